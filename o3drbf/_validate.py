@@ -1,0 +1,115 @@
+"""Input checks shared by every public entry point.
+
+Each check raises :class:`ValueError` naming the argument, the bad value and
+what would be valid, so that bad input never crashes deep inside NumPy.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+__all__ = ["as_points", "as_vectors", "check_number", "per_point", "check_choice"]
+
+
+def as_points(points: Any, name: str = "points", min_count: int = 1, allow_duplicates: bool = True) -> np.ndarray:
+    """Coerce to a C-contiguous ``(N, 3)`` float64 array of finite points.
+
+    Accepts array-likes and Open3D ``PointCloud`` objects.
+
+    Raises
+    ------
+    ValueError
+        Wrong shape, fewer than ``min_count`` points, non-finite values, or
+        (with ``allow_duplicates=False``) repeated points.
+    """
+    if hasattr(points, "points") and not isinstance(points, np.ndarray):
+        points = np.asarray(points.points)
+    try:
+        arr = np.asarray(points, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be an (N, 3) array of numbers: {exc}") from None
+    if arr.ndim == 1 and arr.size == 3:
+        arr = arr[None, :]
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (N, 3), got {arr.shape}")
+    if arr.shape[0] < min_count:
+        what = "is empty" if arr.shape[0] == 0 else f"has {arr.shape[0]} point(s)"
+        raise ValueError(f"{name} {what}; at least {min_count} needed")
+    bad = ~np.isfinite(arr).all(axis=1)
+    if bad.any():
+        idx = np.flatnonzero(bad)
+        raise ValueError(
+            f"{name} has {idx.size} row(s) with NaN or infinite coordinates (first at index {idx[0]}: {arr[idx[0]].tolist()})"
+        )
+    if not allow_duplicates:
+        _, first, counts = np.unique(arr, axis=0, return_index=True, return_counts=True)
+        if (counts > 1).any():
+            k = int((counts > 1).sum())
+            i = int(first[np.argmax(counts > 1)])
+            raise ValueError(f"{name} has {k} duplicated point(s) (e.g. {arr[i].tolist()} at index {i}); remove duplicates first")
+    return np.ascontiguousarray(arr)
+
+
+def as_vectors(vectors: Any, n: int, name: str = "normals", unit: bool = True) -> np.ndarray:
+    """Coerce to ``(n, 3)`` finite vectors, normalized to unit length if ``unit``."""
+    arr = as_points(vectors, name=name, min_count=0)
+    if arr.shape[0] != n:
+        raise ValueError(f"{name} must have one row per point: expected ({n}, 3), got {arr.shape}")
+    if unit:
+        norm = np.linalg.norm(arr, axis=1)
+        if (norm == 0).any():
+            i = int(np.flatnonzero(norm == 0)[0])
+            raise ValueError(f"{name} has zero-length vector(s) (first at index {i}); normals must be non-zero")
+        arr = arr / norm[:, None]
+    return arr
+
+
+def check_number(
+    name: str,
+    value: Any,
+    low: float | None = None,
+    high: float | None = None,
+    low_open: bool = False,
+    integer: bool = False,
+) -> float:
+    """Check a scalar parameter is a finite number in ``[low, high]`` (``(low, high]`` if ``low_open``)."""
+    lo = "-inf" if low is None else repr(low)
+    hi = "inf" if high is None else repr(high)
+    valid = f"{'(' if low_open else '['}{lo}, {hi}]"
+    if isinstance(value, bool):
+        raise ValueError(f"{name} must be a number in {valid}, got {value!r}")
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number in {valid}, got {value!r}") from None
+    if not math.isfinite(x) or (low is not None and (x < low or (low_open and x == low))) or (high is not None and x > high):
+        raise ValueError(f"{name} must be in {valid}, got {value!r}")
+    if integer:
+        if x != int(x):
+            raise ValueError(f"{name} must be a whole number in {valid}, got {value!r}")
+        return int(x)
+    return x
+
+
+def per_point(name: str, value: Any, n: int, low: float = 0.0) -> np.ndarray:
+    """Broadcast a scalar or check a length-``n`` array of values ``>= low``."""
+    arr = np.asarray(value, dtype=float)
+    if arr.ndim == 0:
+        check_number(name, float(arr), low=low)
+        return np.full(n, float(arr))
+    if arr.shape != (n,):
+        raise ValueError(f"{name} must be a scalar or have shape ({n},), got {arr.shape}")
+    bad = ~np.isfinite(arr) | (arr < low)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"{name} must be finite and >= {low}; entry {i} is {arr[i]!r}")
+    return arr
+
+
+def check_choice(name: str, value: Any, choices) -> str:
+    if value not in choices:
+        raise ValueError(f"{name} must be one of {', '.join(map(repr, choices))}, got {value!r}")
+    return value
