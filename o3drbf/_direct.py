@@ -13,8 +13,13 @@ import math
 import numpy as np
 
 try:  # numba is a dependency, but the library still works (slower) without it
+    import os
+
     import numba
 
+    if "NUMBA_THREADING_LAYER" not in os.environ:
+        # Prefer OpenMP: an old system TBB makes numba warn on every start.
+        numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
     HAVE_NUMBA = True
 except ImportError:  # pragma: no cover
     HAVE_NUMBA = False

@@ -257,7 +257,14 @@ def reconstruct(
         from .extract import extract_mesh
 
         t0 = time.perf_counter()
-        mesh = extract_mesh(surface, resolution=resolution, voxel_size=voxel_size, bounds=bounds, progress=progress)
+        try:
+            mesh = extract_mesh(surface, resolution=resolution, voxel_size=voxel_size, bounds=bounds, progress=progress)
+        except RuntimeError as exc:
+            raise RuntimeError(
+                f"{exc}. The fit has no zero crossing: smoothing may swamp the data "
+                f"(lambda_surface {np.median(lam_s):g} vs phi(0) = {kernel.value_at_zero:.3g}); "
+                "lower lambda_surface, or check the normals/exterior constraints"
+            ) from None
         t_extract = time.perf_counter() - t0
     data_constraints = Constraints(norm.inverse(constraints.points), constraints.values, constraints.smoothing, constraints.kind)
     stats = {

@@ -160,7 +160,7 @@ class MultiOrder(Kernel):
         # Symmetric functions of (a, b): always real.
         self._ab = d / t  # a*b = sqrt(v w) = delta / tau
         self._sum = math.sqrt(1.0 / (t * t) + 2.0 * d / t)  # a + b
-        self._regime = "real" if disc > 0 else ("confluent" if disc == 0 else "complex")
+        self._regime = "confluent" if abs(disc) <= 1e-12 else ("real" if disc > 0 else "complex")
         gap = abs(self._a - self._b) / self._sum
         self._confluent = gap < _CONFLUENT_GAP
         self._complex = (not self._confluent) and disc < 0

@@ -1,0 +1,178 @@
+"""The ``o3drbf`` command line.
+
+    o3drbf reconstruct INPUT -o OUTPUT [options]
+
+Exit status 0 on success; 2 with a one-line reason on bad input or usage;
+1 on an unexpected failure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from pathlib import Path
+
+from .api import DEFAULTS
+
+__all__ = ["main", "build_parser"]
+
+log = logging.getLogger("o3drbf")
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a number >= 1, got {value}")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="o3drbf",
+        description="Smooth, closed surfaces from sparse, noisy 3-D points (multi-order RBF volumetric regularization).",
+    )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+
+    rec = sub.add_parser(
+        "reconstruct",
+        help="point cloud -> closed mesh",
+        description="Reconstruct a closed mesh from a point cloud (PLY, PCD, XYZ, XYZN, ...). "
+        "Lengths (offsets, radii, delta, tau, lambda) refer to the data normalized into a 2x2x2 box.",
+    )
+    rec.add_argument("input", help="point cloud file; normals are used when present, else estimated")
+    rec.add_argument("-o", "--output", required=True, help="output mesh (.ply, .obj, .stl, .off, .gltf, .glb)")
+    g = rec.add_argument_group("basis")
+    g.add_argument("--basis", default=DEFAULTS["basis"], choices=["multiorder", "thinplate", "gaussian"])
+    g.add_argument("--delta", type=float, default=DEFAULTS["delta"], help="multi-order: first-order weight, enters squared (default %(default)s)")
+    g.add_argument("--tau", type=float, default=DEFAULTS["tau"], help="multi-order: third-order weight (default %(default)s)")
+    g.add_argument("--sigma", type=float, default=DEFAULTS["sigma"], help="gaussian: width (default %(default)s)")
+    g = rec.add_argument_group("constraints")
+    g.add_argument("--lambda-surface", type=float, default=DEFAULTS["lambda_surface"], help="smoothing of surface constraints, >= 0 (default %(default)s)")
+    g.add_argument("--lambda-exterior", type=float, default=DEFAULTS["lambda_exterior"], help="smoothing of exterior constraints (default %(default)s)")
+    g.add_argument("--surface-count", type=_positive_int, default=DEFAULTS["surface_count"], help="Poisson-disc subsample to about N surface constraints (default %(default)s)")
+    g.add_argument("--all-points", action="store_true", help="use every point as a surface constraint (no subsampling)")
+    g.add_argument("--exterior-ratio", type=float, default=DEFAULTS["exterior_ratio"], help="exterior constraints per surface constraint (default %(default)s)")
+    g.add_argument("--exterior-offset", type=float, default=DEFAULTS["exterior_offset"], help="distance of exterior constraints from the surface (default %(default)s)")
+    g.add_argument("--sphere-count", type=int, default=DEFAULTS["sphere_count"], help="exterior constraints on a sphere around the data (default %(default)s)")
+    g = rec.add_argument_group("solve and mesh")
+    g.add_argument("--solver", default="auto", choices=["auto", "dense", "iterative", "fast"])
+    g.add_argument("--resolution", type=_positive_int, default=DEFAULTS["resolution"], help="marching-cubes cells along the longest side (default %(default)s)")
+    g.add_argument("--voxel-size", type=float, default=None, help="grid spacing in data units (overrides --resolution)")
+    g.add_argument("--save-model", metavar="FILE.npz", help="also save the implicit function (evaluate it later with o3drbf.ImplicitSurface.load)")
+    g.add_argument("--seed", type=int, default=0, help="seed for sampling (default %(default)s)")
+    g = rec.add_argument_group("output")
+    g.add_argument("-q", "--quiet", action="store_true", help="no progress bars or summary")
+    g.add_argument("-v", "--verbose", action="store_true", help="log each step")
+    return parser
+
+
+def _version() -> str:
+    from . import __version__
+
+    return __version__
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.INFO if getattr(args, "verbose", False) else logging.WARNING,
+        format="o3drbf: %(message)s",
+        stream=sys.stderr,
+    )
+    try:
+        if args.command == "reconstruct":
+            return _reconstruct(args)
+    except (ValueError, FileNotFoundError, MemoryError, RuntimeError, OSError) as exc:
+        print(f"o3drbf: error: {_one_line(exc)}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("o3drbf: interrupted", file=sys.stderr)
+        return 130
+    parser.error(f"unknown command {args.command!r}")
+    return 2
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+def _reconstruct(args) -> int:
+    from . import io
+    from .api import reconstruct
+
+    t0 = time.perf_counter()
+    out = io.check_output(args.output, inputs=[args.input])
+    if args.save_model:
+        model = Path(args.save_model)
+        if model.suffix != ".npz":
+            raise ValueError(f"--save-model must end in .npz, got {args.save_model!r}")
+        if model.resolve() == Path(args.input).resolve():
+            raise ValueError("--save-model is the input file; choose another name (inputs are never overwritten)")
+    points, normals, _ = io.read_points(args.input)
+    if normals is None:
+        log.warning("%s has no normals: estimating and orienting them with Open3D", args.input)
+    progress = not args.quiet
+    result = reconstruct(
+        points,
+        normals,
+        basis=args.basis,
+        delta=args.delta,
+        tau=args.tau,
+        sigma=args.sigma,
+        lambda_surface=args.lambda_surface,
+        lambda_exterior=args.lambda_exterior,
+        surface_count=None if args.all_points else args.surface_count,
+        exterior_ratio=args.exterior_ratio,
+        exterior_offset=args.exterior_offset,
+        sphere_count=args.sphere_count,
+        solver=args.solver,
+        resolution=args.resolution,
+        voxel_size=args.voxel_size,
+        seed=args.seed,
+        progress=progress,
+    )
+    io.write_mesh(out, result.mesh, inputs=[args.input])
+    if args.save_model:
+        result.surface.save(args.save_model)
+    if not args.quiet:
+        print(summary(result, points, args.input, out, args.save_model, time.perf_counter() - t0))
+    return 0
+
+
+def summary(result, points, input_path, output_path, model_path=None, seconds=None) -> str:
+    """The closing summary: what went in, what came out, and how well it fits."""
+    from .metrics import fitness_error, mesh_report
+
+    s = result.stats
+    fit = fitness_error(points, result.mesh)
+    rep = mesh_report(result.mesh)
+    scale = result.surface.normalization.scale
+    lines = [
+        f"o3drbf reconstruct: {input_path} -> {output_path}",
+        f"  points           {s['points']:,}" + ("  (normals estimated)" if s["normals_estimated"] else ""),
+        f"  constraints      {s['surface_constraints']:,} surface, {s['exterior_constraints']:,} exterior, {s['sphere_constraints']:,} sphere",
+        f"  mean spacing     {s['mean_spacing']:.4g} (data units), {s['mean_spacing_box']:.4f} in the 2x2x2 box",
+        f"  basis            {s['basis']}",
+        f"  solve            {s['solver']}, {s['solve_seconds']:.2f} s, relative residual {s['residual']:.1e}"
+        + (f", {s['iterations']} iterations" if s["iterations"] else ""),
+        f"  mesh             {s['triangles']:,} triangles, {s['vertices']:,} vertices, extracted in {s['extract_seconds']:.2f} s",
+        f"  watertight       {'yes' if rep['watertight'] else 'NO'} (edge-manifold, closed), Euler characteristic {rep['euler_characteristic']}, {rep['components']} component(s)",
+        f"  fitness error    mean {fit['mean']:.3g}, RMS {fit['rms']:.3g}, max {fit['max']:.3g} (data units; mean {fit['mean'] * scale:.2e} in the box)",
+    ]
+    if model_path:
+        lines.append(f"  model            {model_path}")
+    if seconds is not None:
+        lines.append(f"  total time       {seconds:.1f} s")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,97 @@
+"""The command line: success path, summary, exit codes, safety of files."""
+
+import subprocess
+import sys
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from o3drbf.cli import main
+from o3drbf.io import write_points
+from o3drbf.shapes import Torus
+
+
+@pytest.fixture(scope="module")
+def scan(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cli")
+    p, n = Torus(0.6, 0.25).sample(4000, noise=0.002, seed=1)
+    write_points(d / "torus.ply", p, n)
+    write_points(d / "torus.xyz", p)
+    return d
+
+
+def test_reconstruct_writes_mesh_model_and_summary(scan, capsys):
+    out = scan / "mesh.ply"
+    code = main(["reconstruct", str(scan / "torus.ply"), "-o", str(out), "--surface-count", "800",
+                 "--resolution", "48", "--save-model", str(scan / "model.npz")])
+    assert code == 0
+    text = capsys.readouterr().out
+    for key in ("points           4,000", "surface", "exterior", "mean spacing", "relative residual", "triangles", "watertight       yes", "fitness error"):
+        assert key in text, key
+    mesh = o3d.io.read_triangle_mesh(str(out))
+    assert len(mesh.triangles) > 1000 and mesh.is_edge_manifold()
+    assert (scan / "model.npz").exists()
+    leftovers = [f for f in scan.iterdir() if f.name.startswith(".")]
+    assert leftovers == []  # atomic writes leave no temporaries
+
+
+@pytest.mark.parametrize("ext", [".obj", ".stl"])
+def test_output_format_follows_extension(scan, ext):
+    out = scan / f"mesh{ext}"
+    assert main(["reconstruct", str(scan / "torus.ply"), "-o", str(out), "--surface-count", "300", "--resolution", "24", "-q"]) == 0
+    assert len(o3d.io.read_triangle_mesh(str(out)).triangles) > 100
+
+
+def test_points_without_normals(scan, capsys, caplog):
+    out = scan / "nonormals.ply"
+    assert main(["reconstruct", str(scan / "torus.xyz"), "-o", str(out), "--surface-count", "400", "--resolution", "32"]) == 0
+    assert "normals estimated" in capsys.readouterr().out
+    assert "has no normals: estimating and orienting" in caplog.text
+
+
+@pytest.mark.parametrize(
+    "args,message",
+    [
+        (["{d}/missing.ply", "-o", "{d}/x.ply"], "input file not found"),
+        (["{d}/torus.ply", "-o", "{d}/torus.ply"], "is the input file"),
+        (["{d}/torus.ply", "-o", "{d}/x.docx"], "unsupported extension"),
+        (["{d}/torus.ply", "-o", "{d}/nofolder/x.ply"], "output folder does not exist"),
+        (["{d}/torus.ply", "-o", "{d}/x.ply", "--delta", "-3"], "delta must be"),
+        (["{d}/torus.ply", "-o", "{d}/x.ply", "--lambda-surface", "-1"], "lambda_surface must be"),
+        (["{d}/empty.ply", "-o", "{d}/x.ply"], "holds no points"),
+        (["{d}/garbage.ply", "-o", "{d}/x.ply"], "holds no points"),
+        (["{d}/torus.ply", "-o", "{d}/x.ply", "--save-model", "{d}/m.txt"], "must end in .npz"),
+    ],
+)
+def test_bad_input_exits_2_with_one_line(scan, capsys, args, message):
+    (scan / "empty.ply").write_text("")
+    (scan / "garbage.ply").write_bytes(b"\x00\x01 not a ply")
+    before = (scan / "torus.ply").read_bytes()
+    code = main(["reconstruct", *[a.format(d=scan) for a in args], "-q"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2
+    assert message in err and err.startswith("o3drbf: error:") and "\n" not in err
+    assert (scan / "torus.ply").read_bytes() == before  # the input is never touched
+
+
+def test_usage_errors_and_entry_point(scan):
+    with pytest.raises(SystemExit) as e:
+        main(["reconstruct", str(scan / "torus.ply")])  # no -o
+    assert e.value.code == 2
+    with pytest.raises(SystemExit) as e:
+        main(["reconstruct", str(scan / "torus.ply"), "-o", "x.ply", "--surface-count", "0"])
+    assert e.value.code == 2
+    done = subprocess.run([sys.executable, "-m", "o3drbf.cli", "--version"], capture_output=True, text=True)
+    assert done.returncode == 0 and "o3drbf" in done.stdout
+
+
+def test_outputs_get_ordinary_permissions(scan):
+    import os
+    import stat
+
+    out = scan / "perm.ply"
+    assert main(["reconstruct", str(scan / "torus.ply"), "-o", str(out), "--surface-count", "300", "--resolution", "24", "-q"]) == 0
+    umask = os.umask(0)
+    os.umask(umask)
+    assert stat.S_IMODE(out.stat().st_mode) == 0o666 & ~umask

@@ -1,0 +1,149 @@
+"""The basis functions against independent truths: closed-form limits,
+the Fourier symbol (numerical Hankel transform), finite differences."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy.integrate import quad
+
+from o3drbf.kernels import KERNELS, Gaussian, MultiOrder, ThinPlate, make_kernel
+from o3drbf.sums import kernel_matrix, kernel_sum
+
+# (delta, tau): real, confluent (4 tau^2 delta^2 = 1), near-confluent, complex regimes
+CASES = [(10.0, 0.01), (3.1623, 0.01), (5.0, 0.025), (20.0, 0.025), (40.0, 0.0125), (20.0, 0.0249999), (40.0, 0.025)]
+
+
+@pytest.mark.parametrize("delta,tau", CASES)
+def test_value_at_zero_matches_closed_form(delta, tau):
+    k = MultiOrder(delta, tau)
+    expected = 1.0 / (4 * math.pi * delta * math.sqrt(1 + 2 * delta * tau))
+    r = np.array([0.0, 1e-12, 1e-9])
+    assert np.allclose(k(r), expected, rtol=1e-12, atol=0)
+
+
+@pytest.mark.parametrize("delta,tau", CASES)
+def test_derivative_vanishes_at_zero_and_matches_finite_differences(delta, tau):
+    k = MultiOrder(delta, tau)
+    assert k.derivative(np.array([0.0]))[0] == 0.0
+    assert abs(k.derivative(np.array([1e-9]))[0]) < 1e-9 * abs(k.derivative_over_r(np.array([0.0]))[0]) * 10
+    r = np.array([0.003, 0.02, 0.3, 1.5])
+    h = 1e-6
+    fd = (k(r + h) - k(r - h)) / (2 * h)
+    assert np.allclose(k.derivative(r), fd, rtol=1e-6, atol=0)
+
+
+@pytest.mark.parametrize("delta,tau", CASES)
+def test_regimes_and_continuity_across_the_taylor_switch(delta, tau):
+    k = MultiOrder(delta, tau)
+    disc = 1 - 4 * tau**2 * delta**2
+    assert k.regime == ("confluent" if abs(disc) < 1e-12 else "real" if disc > 0 else "complex")
+    a = abs(k.decay_rates[0])
+    r = np.array([0.999e-3 / a, 1.001e-3 / a])
+    v = k(r)
+    # phi is smooth: across the switch the change is the true O(r^2) change, ~ 1e-6 * phi(0) at most.
+    assert abs(v[0] - v[1]) < 1e-6 * v[0]
+    d = k.derivative_over_r(r)
+    assert abs(d[0] - d[1]) < 1e-5 * abs(d[0])
+
+
+@pytest.mark.parametrize("delta,tau", [(10.0, 0.01), (20.0, 0.025), (40.0, 0.025), (3.1623, 0.01)])
+def test_fourier_symbol_by_hankel_transform(delta, tau):
+    """phi_hat(k) = 4 pi / k * int_0^inf phi(r) r sin(k r) dr = 1 / (delta^2 k^2 + k^4 + tau^2 k^6).
+
+    The Laplace part 1/(4 pi delta^2 r) (transform 1/(delta^2 k^2)) is
+    subtracted analytically; the rest decays exponentially."""
+    kern = MultiOrder(delta, tau)
+    c = 4 * math.pi * delta**2
+    rmax = 60.0 / min(abs(kern.decay_rates[0].real), abs(kern.decay_rates[1].real))
+    for k in (1.0, 7.0, 20.0):
+        def integrand(r):
+            return (kern(np.array([r]))[0] - 1.0 / (c * r)) * r * math.sin(k * r) if r > 0 else 0.0
+
+        integral, _ = quad(integrand, 0, rmax, limit=4000)
+        transform = 4 * math.pi / k * integral + 1.0 / (delta**2 * k**2)
+        expected = 1.0 / (delta**2 * k**2 + k**4 + tau**2 * k**6)
+        assert transform == pytest.approx(expected, rel=1e-5)
+        assert kern.fourier_symbol(k) == pytest.approx(expected, rel=1e-14)
+
+
+def test_far_field_is_a_newton_potential():
+    k = MultiOrder(10.0, 0.01)
+    r = np.array([5.0, 10.0])
+    assert np.allclose(k(r), 1 / (4 * math.pi * 100 * r), rtol=1e-12)
+
+
+def test_confluent_limit_formula():
+    """At 4 tau^2 delta^2 = 1: phi = 1/(4 pi delta^2 r) [1 - e^{-ar}(1 + ar/2)], a = 1/(sqrt 2 tau)."""
+    delta, tau = 20.0, 0.025
+    k = MultiOrder(delta, tau)
+    assert k.regime == "confluent"
+    a = 1 / (math.sqrt(2) * tau)
+    r = np.array([0.01, 0.05, 0.3, 2.0])
+    expected = (1 - np.exp(-a * r) * (1 + a * r / 2)) / (4 * math.pi * delta**2 * r)
+    assert np.allclose(k(r), expected, rtol=1e-12)
+    # and the neighbours on both sides converge to it
+    for t in (tau * (1 - 1e-7), tau * (1 + 1e-7)):
+        assert np.allclose(MultiOrder(delta, t)(r), expected, rtol=1e-5)
+
+
+@pytest.mark.parametrize("delta,tau", [(10.0, 0.01), (40.0, 0.025)])
+def test_kernel_matrix_is_positive_definite(delta, tau, rng):
+    x = rng.uniform(-1, 1, (300, 3))
+    a = kernel_matrix(MultiOrder(delta, tau), x)
+    assert np.linalg.eigvalsh(a).min() > 0
+
+
+def test_gaussian_fourier_symbol_and_gradient():
+    g = Gaussian(0.3)
+    k = 4.0
+    integral, _ = quad(lambda r: g(np.array([r]))[0] * r * math.sin(k * r), 0, 10, limit=400)
+    assert 4 * math.pi / k * integral == pytest.approx(g.fourier_symbol(k), rel=1e-8)
+    r = np.array([0.05, 0.2, 0.7])
+    fd = (g(r + 1e-6) - g(r - 1e-6)) / 2e-6
+    assert np.allclose(g.derivative(r), fd, rtol=1e-6)
+
+
+def test_thinplate():
+    t = ThinPlate()
+    r = np.array([0.0, 0.5, 2.0])
+    assert np.allclose(t(r), r**3)
+    assert np.allclose(t.derivative(r), 3 * r**2)
+    assert t.polynomial_degree == 1 and not t.positive_definite
+
+
+@pytest.mark.parametrize("kernel", [MultiOrder(10, 0.01), MultiOrder(3.1623, 0.01), MultiOrder(40, 0.025), Gaussian(0.2), ThinPlate()])
+def test_compiled_and_numpy_sums_agree(kernel, rng):
+    c = rng.uniform(-1, 1, (400, 3))
+    x = rng.uniform(-1, 1, (300, 3))
+    x[:3] = c[:3]
+    x[3] = c[4] + 1e-7
+    w = rng.standard_normal(400)
+    v1, g1 = kernel_sum(kernel, c, w, x, gradient=True)
+    v0, g0 = kernel_sum(kernel, c, w, x, gradient=True, compiled=False, chunk_bytes=8 * 400 * 7)
+    assert np.allclose(v1, v0, rtol=1e-12, atol=1e-12 * np.abs(v0).max())
+    assert np.allclose(g1, g0, rtol=1e-10, atol=1e-10 * np.abs(g0).max())
+    # and the gradient is the gradient: central differences of the sum
+    h = 1e-6
+    e = np.eye(3)
+    fd = np.column_stack([(kernel_sum(kernel, c, w, x[:20] + h * e[i]) - kernel_sum(kernel, c, w, x[:20] - h * e[i])) / (2 * h) for i in range(3)])
+    assert np.allclose(g1[:20], fd, rtol=1e-5, atol=1e-6 * np.abs(fd).max())
+
+
+def test_make_kernel_and_errors():
+    assert make_kernel("multiorder", delta=5, tau=0.02) == MultiOrder(5, 0.02)
+    assert make_kernel("Gaussian", sigma=0.3) == Gaussian(0.3)
+    assert set(KERNELS) == {"multiorder", "thinplate", "gaussian"}
+    k = MultiOrder(7, 0.02)
+    assert make_kernel(**k.to_dict()) == k
+    with pytest.raises(ValueError, match="unknown basis 'cubic'"):
+        make_kernel("cubic")
+    with pytest.raises(ValueError, match="takes parameters"):
+        make_kernel("thinplate", delta=3)
+    for bad in (0, -1, float("nan"), float("inf"), 1e5, "x"):
+        with pytest.raises(ValueError, match="delta"):
+            MultiOrder(bad, 0.01)
+    with pytest.raises(ValueError, match="tau"):
+        MultiOrder(10, 0)
+    with pytest.raises(ValueError, match="sigma"):
+        Gaussian(-1)

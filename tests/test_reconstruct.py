@@ -1,0 +1,139 @@
+"""End to end: analytic shapes in, meshes out, checked against the truth."""
+
+import numpy as np
+import pytest
+
+import o3drbf
+from o3drbf.metrics import average_curvature, fitness_error
+from o3drbf.shapes import Sphere, Torus
+
+
+def test_sphere_radius_recovered_within_one_percent():
+    sphere = Sphere(radius=2.5, center=(10.0, -3.0, 4.0))
+    p, n = sphere.sample(4000, seed=1)
+    r = o3drbf.reconstruct(p, n, lambda_surface=1e-5, surface_count=1500, resolution=64)
+    radii = np.linalg.norm(np.asarray(r.mesh.vertices) - sphere.center, axis=1)
+    assert abs(radii.mean() / 2.5 - 1) < 0.01  # the radius, within 1%
+    assert np.abs(radii / 2.5 - 1).max() < 0.02  # and no vertex sags more than 2% between samples
+    # the implicit function itself: zero on the sphere, positive inside, negative outside
+    q, _ = sphere.sample(200, seed=9)
+    assert np.abs(r.surface(q)).max() < 0.01
+    assert r.surface(np.array(sphere.center))[0] > 0
+    assert r.surface(np.array(sphere.center) + [5.0, 0, 0])[0] < 0
+
+
+@pytest.fixture(scope="module")
+def torus_result():
+    torus = Torus(0.6, 0.25)
+    p, n = torus.sample(10_000, noise=0.002, seed=4)
+    return torus, p, o3drbf.reconstruct(p, n, surface_count=1500, resolution=64)
+
+
+def test_torus_is_watertight_manifold_genus_one(torus_result):
+    torus, p, r = torus_result
+    m = r.mesh
+    assert m.is_watertight()  # Open3D's: no duplicates, no degenerate or self-intersecting triangles
+    assert m.is_edge_manifold() and m.is_vertex_manifold()
+    assert m.euler_poincare_characteristic() == 0
+    assert len(m.cluster_connected_triangles()[1]) == 1
+    d = np.abs(torus.signed_distance(np.asarray(m.vertices)))
+    assert d.mean() < 0.004 and d.max() < 0.02
+
+
+def test_stats_and_constraints_are_reported(torus_result):
+    _, p, r = torus_result
+    s = r.stats
+    assert s["points"] == len(p)
+    assert abs(s["surface_constraints"] - 1500) <= 31
+    assert s["exterior_constraints"] == pytest.approx(150, abs=20)
+    assert s["sphere_constraints"] == 64
+    assert s["residual"] < 1e-10
+    assert 0.02 < s["mean_spacing"] < 0.06
+    c = r.constraints
+    assert len(c) == s["surface_constraints"] + s["exterior_constraints"] + s["sphere_constraints"]
+    # exterior constraints are outside the torus, surface constraints on it (data coordinates)
+    torus = torus_result[0]
+    assert (torus.signed_distance(c.select(1)) > 0.03).all()
+    assert np.abs(torus.signed_distance(c.select(0))).max() < 0.01
+
+
+def test_lambda_zero_interpolates_the_constraints():
+    p, n = Torus(0.6, 0.25).sample(3000, seed=5)
+    r = o3drbf.reconstruct(p, n, lambda_surface=0.0, lambda_exterior=0.0, surface_count=800, extract=False)
+    c = r.constraints
+    f = r.surface(c.points)
+    assert np.max(np.abs(f - c.values)) < 1e-8 * np.max(np.abs(c.values))
+
+
+def test_more_smoothing_is_smoother_and_fits_less():
+    torus = Torus(0.6, 0.25)
+    p, n = torus.sample(6000, noise=0.01, seed=6)
+    curv, fit = [], []
+    for lam in (1e-4, 3e-4, 1e-3, 3e-3):
+        r = o3drbf.reconstruct(p, n, lambda_surface=lam, surface_count=1500, resolution=64)
+        curv.append(average_curvature(r.mesh))
+        fit.append(fitness_error(p, r.mesh)["rms"])
+    assert all(a > b for a, b in zip(curv, curv[1:])), curv
+    assert all(a < b for a, b in zip(fit, fit[1:])), fit
+
+
+def test_deterministic_and_accepts_open3d_point_clouds():
+    import open3d as o3d
+
+    p, n = Torus(0.6, 0.25).sample(3000, seed=7)
+    a = o3drbf.reconstruct(p, n, surface_count=600, resolution=32)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
+    pcd.normals = o3d.utility.Vector3dVector(n)
+    b = o3drbf.reconstruct(pcd, surface_count=600, resolution=32)
+    assert np.array_equal(np.asarray(a.mesh.vertices), np.asarray(b.mesh.vertices))
+    assert not b.stats["normals_estimated"]
+
+
+def test_without_normals_they_are_estimated_and_logged(caplog):
+    p, _ = Torus(0.6, 0.25).sample(4000, seed=8)
+    with caplog.at_level("INFO", logger="o3drbf"):
+        r = o3drbf.reconstruct(p, surface_count=800, resolution=48)
+    assert "estimating and orienting normals" in caplog.text
+    assert r.stats["normals_estimated"]
+    assert r.mesh.euler_poincare_characteristic() == 0
+
+
+@pytest.mark.parametrize("basis", ["thinplate", "gaussian"])
+def test_other_bases_run(basis):
+    p, n = Sphere(1.0).sample(2000, seed=2)
+    r = o3drbf.reconstruct(p, n, basis=basis, sigma=0.3, surface_count=500, resolution=32)
+    radii = np.linalg.norm(np.asarray(r.mesh.vertices), axis=1)
+    assert abs(np.median(radii) - 1) < 0.05
+
+
+def test_bad_input_gets_a_clear_error():
+    p, n = Sphere(1.0).sample(200, seed=2)
+    cases = [
+        (np.zeros((0, 3)), None, {}, "points is empty"),
+        (p[:5], n[:5], {}, "at least 10 needed"),
+        (np.vstack([p[:-1], [[np.nan, 0, 0]]]), n, {}, "NaN"),
+        (np.vstack([p, p[:3]]), np.vstack([n, n[:3]]), {}, "duplicated point"),
+        (p[:, :2], None, {}, r"shape \(N, 3\)"),
+        (p, n[:-1], {}, r"one row per point"),
+        (p, np.zeros_like(n), {}, "zero-length"),
+        (p, n, {"delta": 0}, "delta must be"),
+        (p, n, {"tau": -1}, "tau must be"),
+        (p, n, {"lambda_surface": -1e-3}, "lambda_surface must be"),
+        (p, n, {"lambda_exterior": float("nan")}, "lambda_exterior must be"),
+        (p, n, {"surface_count": 3}, "surface_count must be"),
+        (p, n, {"exterior_offset": 2.0}, "exterior_offset must be"),
+        (p, n, {"exterior_ratio": 1.5}, "exterior_ratio must be"),
+        (p, n, {"basis": "spline"}, "unknown basis"),
+        (p, n, {"solver": "magic"}, "method must be one of"),
+        (p, n, {"resolution": 1}, "resolution must be"),
+        ("points.ply", None, {}, r"must be an \(N, 3\) array"),
+    ]
+    for pts, nrm, kw, msg in cases:
+        with pytest.raises(ValueError, match=msg):
+            o3drbf.reconstruct(pts, nrm, surface_count=kw.pop("surface_count", 100), **kw)
+
+
+def test_oversmoothing_that_erases_the_surface_says_what_to_change():
+    p, n = Torus(0.6, 0.25).sample(3000, seed=5)
+    with pytest.raises(RuntimeError, match=r"No surface found.*lower lambda_surface"):
+        o3drbf.reconstruct(p, n, lambda_surface=0.5, surface_count=500, resolution=32)
