@@ -14,7 +14,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import ndimage
 
 from ._validate import check_number
 
@@ -108,37 +107,50 @@ def evaluate_grid(
     _tick(bar, vals.size)
     for lev in range(levels):
         stride //= 2
-        d = vals - level
-        corners = [d[a : a + d.shape[0] - 1, b : b + d.shape[1] - 1, c : c + d.shape[2] - 1] for a in (0, 1) for b in (0, 1) for c in (0, 1)]
-        mn = np.minimum.reduce(corners)
-        mx = np.maximum.reduce(corners)
-        absmin = np.minimum.reduce([np.abs(x) for x in corners])
-        # A crossing, or close enough to one for the cell's own spread (a
-        # local Lipschitz bound) to reach it; dilated on all but the last level.
-        active = ((mn <= 0) & (mx >= 0)) | (absmin <= 0.5 * (mx - mn))
-        if lev < levels - 1:
-            active = ndimage.binary_dilation(active, structure=np.ones((3, 3, 3), bool))
-        new_shape = tuple(2 * s - 1 for s in vals.shape)
-        up = _upsample(vals)
-        up_exact = np.zeros(new_shape, dtype=bool)
+        # The Lipschitz margin guards coarse levels (a feature between
+        # corners); on the finest grid only actual crossings matter.
+        margin = 0.5 if lev < levels - 1 else 0.0
+        vals = _upsample(vals)
+        up_exact = np.zeros(vals.shape, dtype=bool)
         up_exact[::2, ::2, ::2] = exact
-        need = np.zeros(new_shape, dtype=bool)
-        for a in range(3):
-            for b in range(3):
-                for c in range(3):
-                    sl = (slice(a, a + 2 * active.shape[0] - 1, 2), slice(b, b + 2 * active.shape[1] - 1, 2), slice(c, c + 2 * active.shape[2] - 1, 2))
-                    need[sl] |= active
-        need &= ~up_exact
-        where = np.nonzero(need)
-        if where[0].size:
-            pts = _grid_points(origin, spacing, [w * stride for w in where])
-            up[where] = func(pts)
+        exact = up_exact
+        # Surface following: evaluate the missing corners of every cell that
+        # crosses (or nearly crosses) the level by the current values, until
+        # all such cells are exact.  Interpolated same-signed values cannot
+        # cross, so the cells left out contain no surface.
+        for _sweep in range(64):
+            cells = _candidate_cells(vals - level, margin)
+            need = _corners(cells, vals.shape) & ~exact
+            where = np.nonzero(need)
+            if where[0].size == 0:
+                break
+            vals[where] = func(_grid_points(origin, spacing, [w * stride for w in where]))
+            exact[where] = True
             _tick(bar, where[0].size)
-        up_exact |= need
-        vals, exact = up, up_exact
     if bar is not None:
         bar.close()
     return vals, exact
+
+
+def _candidate_cells(d, margin: float = 0.5):
+    """Cells whose corners change sign, or come closer to zero than ``margin``
+    times their own spread (a local Lipschitz test for surfaces between the corners)."""
+    corners = [d[a : a + d.shape[0] - 1, b : b + d.shape[1] - 1, c : c + d.shape[2] - 1] for a in (0, 1) for b in (0, 1) for c in (0, 1)]
+    mn = np.minimum.reduce(corners)
+    mx = np.maximum.reduce(corners)
+    absmin = np.minimum.reduce([np.abs(x) for x in corners])
+    return ((mn <= 0) & (mx >= 0)) | (absmin <= margin * (mx - mn))
+
+
+def _corners(cells, shape):
+    """Grid points that are corners of the marked cells."""
+    out = np.zeros(shape, dtype=bool)
+    nx, ny, nz = cells.shape
+    for a in (0, 1):
+        for b in (0, 1):
+            for c in (0, 1):
+                out[a : a + nx, b : b + ny, c : c + nz] |= cells
+    return out
 
 
 def _upsample(v):
