@@ -1,0 +1,121 @@
+"""Visibility by ray casting and exterior constraints toward the cameras (o3drbf.visibility)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from o3drbf.cameras import Camera
+from o3drbf.shapes import Sphere, Torus, TorusStack
+from o3drbf.visibility import exterior_constraints, visibility
+
+
+def ring(n=8, distance=3.0, elevation=20.0):
+    e = np.radians(elevation)
+    return [
+        Camera.look_at(distance * np.array([np.cos(a) * np.cos(e), np.sin(a) * np.cos(e), np.sin(e)]), [0, 0, 0], fov=50, width=640, height=480, name=f"ring {k}")
+        for k, a in enumerate(2 * np.pi * np.arange(n) / n)
+    ]
+
+
+@pytest.mark.parametrize("shape", [Sphere(1.0), Torus(0.7, 0.25), TorusStack(3, 0.6, 0.2, 0.1)], ids=["sphere", "torus", "towers"])
+def test_no_exterior_constraint_inside_the_object(shape):
+    points, _ = shape.sample(20000, seed=1)
+    cams = ring()
+    exterior, info = exterior_constraints(points, cams, offset=0.05, ratio=0.1)
+    sd = shape.signed_distance(exterior)
+    assert sd.min() > 0, f"{(sd <= 0).sum()} exterior points inside, deepest {sd.min():.4f}"
+    # Measured: 2,027-2,040 of the 2,000 wanted; at most the offset from the surface.
+    assert 0.75 * 2000 <= len(exterior) <= 1.05 * 2000
+    assert sd.max() <= 0.05 + 1e-9
+    assert info["seen"].shape == (8,) and (info["seen"] > 0).all()
+    np.testing.assert_allclose(np.linalg.norm(exterior - points[info["source"]], axis=1), 0.05)
+
+
+def test_far_side_of_a_sphere_is_hidden():
+    points, normals = Sphere(1.0).sample(20000, seed=2)
+    points = np.vstack([points, [[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]])
+    cam = Camera.look_at([3.0, 0.0, 0.0], [0, 0, 0], fov=50)
+    vis = visibility(points, [cam])[:, 0]
+    assert not vis[-2] and vis[-1]
+    # Nothing facing away from the camera by more than ~25 degrees is seen.
+    toward, _ = cam.toward(points[:-2])
+    facing = (toward * normals).sum(axis=1)
+    assert not vis[:-2][facing < -0.4].any()
+    assert vis[:-2][facing > 0.5].mean() > 0.6  # and most of what faces it is (measured 0.80)
+
+
+def test_unoccluded_mode_and_known_cameras():
+    points, _ = Sphere(1.0).sample(5000, seed=3)
+    cam = Camera.look_at([3.0, 0.0, 0.0], [0, 0, 0], fov=60)
+    assert visibility(points, [cam], occluder="none").all()
+    known = np.full(len(points), -1)
+    far = np.flatnonzero(points[:, 0] < -0.9)
+    known[far] = 0
+    vis = visibility(points, [cam], point_camera=known)[:, 0]
+    assert vis[far].all()  # produced by this camera: visible by definition
+    assert not visibility(points, [cam])[far, 0].any()
+
+
+def test_direction_sensor_sees_one_hemisphere():
+    points, normals = Sphere(1.0).sample(20000, seed=4)
+    down = Camera.from_direction([0.0, 0.0, -1.0])  # looks down: free space is +z
+    vis = visibility(points, [down])[:, 0]
+    assert not vis[normals[:, 2] < -0.3].any()
+    assert vis[normals[:, 2] > 0.5].mean() > 0.6  # measured 0.82
+    exterior, _ = exterior_constraints(points, [down], offset=0.05, ratio=0.05)
+    assert (Sphere(1.0).signed_distance(exterior) > 0).all() and (exterior[:, 2] > 0).all()
+
+
+def test_points_behind_every_camera():
+    points, _ = Sphere(0.2, center=(0.0, 0.0, 5.0)).sample(500, seed=5)
+    cams = [Camera.look_at([0, 0, 0], [0, 0, -1], up=(0, 1, 0), fov=50), Camera.look_at([0.1, 0, 0], [0.1, 0, -1], up=(0, 1, 0), fov=50)]
+    with pytest.raises(ValueError, match="all 500 points are behind every camera"):
+        visibility(points, cams)
+    with pytest.raises(ValueError, match="behind every camera"):
+        exterior_constraints(points, cams, offset=0.01)
+
+
+def test_camera_that_sees_nothing_is_named():
+    points, _ = Sphere(1.0).sample(2000, seed=6)
+    cams = ring(4)
+    cams[2] = Camera.look_at([0, 0, 3.0], [0, 0, 6.0], up=(0, 1, 0), fov=30, name="away")
+    with pytest.raises(ValueError, match=r"1 camera\(s\) see no point, first camera 2 \(away\): of 2000 points, 0 are in front"):
+        visibility(points, cams)
+    assert visibility(points, cams, strict=False)[:, 2].sum() == 0
+
+
+def test_bad_arguments():
+    points, _ = Sphere(1.0).sample(200, seed=7)
+    cams = ring(2)
+    with pytest.raises(ValueError, match="not a camera index"):
+        visibility(points, cams, point_camera=np.full(200, 5))
+    with pytest.raises(ValueError, match="offset"):
+        exterior_constraints(points, cams, offset=0.0)
+    with pytest.raises(ValueError, match="occluder"):
+        visibility(points, cams, occluder="mesh please")
+    with pytest.raises(ValueError, match="Camera"):
+        visibility(points, [np.eye(3)])
+    with pytest.raises(ValueError, match="empty"):
+        visibility(points, [])
+
+
+def test_subset_with_all_points_as_occluder_and_mesh_occluder():
+    import open3d as o3d
+
+    torus = Torus(0.7, 0.25)
+    points, _ = torus.sample(20000, seed=8)
+    subset = points[::10]  # sparse surface constraints; all points block the rays
+    cams = ring()
+    exterior, info = exterior_constraints(subset, cams, offset=0.05, ratio=0.1, occluder=points)
+    assert (torus.signed_distance(exterior) > 0).all() and 150 <= len(exterior) <= 210
+    mesh = o3d.geometry.TriangleMesh.create_torus(0.7, 0.25, 64, 32)
+    vis_mesh = visibility(subset, cams, occluder=mesh, margin=0.02, rays="point")
+    vis_voxels = visibility(subset, cams, occluder=points)
+    # Mesh occlusion sees more (no voxel shell to leave), and what voxels see, it sees too.
+    assert vis_mesh.sum() > vis_voxels.sum()
+    assert (vis_voxels & ~vis_mesh).sum() <= 0.02 * vis_voxels.sum()
+    exterior2, _ = exterior_constraints(subset, cams, offset=0.05, ratio=0.1, visible=vis_mesh)
+    # The mesh is faceted (sagitta 0.25 * (1 - cos(pi / 32)) = 0.0012): grazing sightings
+    # may put a point that far inside the true torus (measured: 1 of 196, 1e-5 deep).
+    assert torus.signed_distance(exterior2).min() > -0.002
