@@ -107,6 +107,11 @@ def reconstruct(
     points,
     normals=None,
     *,
+    cameras=None,
+    point_camera=None,
+    outliers: str = "none",
+    outlier_radius: float | None = None,
+    keep_components: int = 1,
     basis: str = DEFAULTS["basis"],
     delta: float = DEFAULTS["delta"],
     tau: float = DEFAULTS["tau"],
@@ -133,9 +138,24 @@ def reconstruct(
     points : (N, 3) array_like or open3d.geometry.PointCloud
         Surface samples.  A point cloud's normals are used when present.
     normals : (N, 3) array_like, optional
-        Outward normals.  Without them (and without a point cloud that has
-        them) normals are estimated and oriented with Open3D, and a log
-        message says so.
+        Outward normals.  Without them (and without cameras, or a point cloud
+        that has normals) normals are estimated and oriented with Open3D, and
+        a log message says so.
+    cameras : sequence of Camera, CameraSet, or path, optional
+        The cameras (or scanners) that saw the points.  Exterior constraints
+        are then placed toward every camera with an unobstructed view of a
+        point (method.md section 4) instead of along normals.
+    point_camera : (N,) int array_like, optional
+        Index of the camera that produced each point (-1 unknown): such
+        points are visible from it by definition.
+    outliers : {"none", "largest", "statistical"}
+        Keep the ``keep_components`` largest connected components under
+        ``outlier_radius`` (default three mean spacings), or Open3D's
+        statistical outlier removal.
+    outlier_radius : float, optional
+        Neighbourhood radius for ``outliers="largest"``, in data units.
+    keep_components : int
+        How many components ``outliers="largest"`` keeps.
     basis : {"multiorder", "thinplate", "gaussian"}
     delta, tau : float
         Multi-order basis parameters (normalized box): delta in (0, 1e4],
@@ -209,19 +229,56 @@ def reconstruct(
         surface_radius = check_number("surface_radius", surface_radius, low=0.0, high=2.0, low_open=True)
         surface_count = None
 
-    normals_estimated = normals is None
+    cams = _cameras(cameras)
+    if point_camera is not None:
+        point_camera = np.asarray(point_camera)
+        if point_camera.shape != (n,) or not np.issubdtype(point_camera.dtype, np.integer):
+            raise ValueError(f"point_camera must be an ({n},) integer array, got {point_camera.dtype} {point_camera.shape}")
+        if cams is None:
+            raise ValueError("point_camera needs cameras")
+        if point_camera.max() >= len(cams) or point_camera.min() < -1:
+            raise ValueError(f"point_camera values must be -1 or camera indices 0..{len(cams) - 1}")
+    removed = 0
+    if outliers != "none":
+        keep = _remove_outliers(pts, outliers, outlier_radius, keep_components)
+        removed = n - len(keep)
+        pts = pts[keep]
+        normals = None if normals is None else np.asarray(normals, dtype=float)[keep]
+        lam_s = lam_s[keep]
+        point_camera = None if point_camera is None else point_camera[keep]
+        log.info("outliers (%s): removed %d of %d points", outliers, removed, n)
+        n = len(pts)
+        if n < 10:
+            raise ValueError(f"outlier removal left {n} points; at least 10 needed (raise outlier_radius)")
+
+    normals_estimated = normals is None and cams is None
     if normals_estimated:
         log.info("no normals given: estimating and orienting normals with Open3D (30 neighbours)")
         normals = estimate_normals(pts, seed=seed)
-    nrm = as_vectors(normals, n, name="normals")
+    nrm = None if normals is None else as_vectors(normals, n, name="normals")
 
     norm = Normalization.from_points(pts)
     box = norm.forward(pts)
     t0 = time.perf_counter()
     idx = surface_constraints(box, count=surface_count, radius=surface_radius, seed=seed)
     surf_pts = box[idx]
-    n_ext = int(round(exterior_ratio * len(idx)))
-    ext = exterior_from_normals(surf_pts, nrm[idx], exterior_offset, n_ext, seed=seed, reference=box)
+    camera_info = None
+    if cams is not None:
+        from .visibility import exterior_constraints
+
+        ext_data, camera_info = exterior_constraints(
+            pts[idx],
+            cams,
+            offset=exterior_offset / norm.scale,
+            ratio=max(exterior_ratio, 1e-9),
+            seed=seed,
+            occluder=pts,
+            point_camera=None if point_camera is None else point_camera[idx],
+        )
+        ext = norm.forward(ext_data) if exterior_ratio > 0 else np.zeros((0, 3))
+    else:
+        n_ext = int(round(exterior_ratio * len(idx)))
+        ext = exterior_from_normals(surf_pts, nrm[idx], exterior_offset, n_ext, seed=seed, reference=box)
     sph = bounding_sphere(box, sphere_count)
     constraints = Constraints.concat(
         Constraints.of_kind(surf_pts, SURFACE, lam_s[idx]),
@@ -269,7 +326,10 @@ def reconstruct(
     data_constraints = Constraints(norm.inverse(constraints.points), constraints.values, constraints.smoothing, constraints.kind)
     stats = {
         "points": n,
+        "outliers_removed": removed,
         "normals_estimated": normals_estimated,
+        "cameras": 0 if cams is None else len(cams),
+        "points_seen_per_camera": None if camera_info is None else [int(v) for v in camera_info["seen"]],
         **{f"{k}_constraints": v for k, v in constraints.counts().items()},
         "mean_spacing_box": spacing,
         "mean_spacing": spacing / norm.scale,
@@ -286,6 +346,34 @@ def reconstruct(
         stats["vertices"] = len(mesh.vertices)
         stats["triangles"] = len(mesh.triangles)
     return Reconstruction(surface, mesh, data_constraints, sol, stats)
+
+
+def _cameras(cameras):
+    """None, a sequence of Camera, a CameraSet, or a camera file path."""
+    if cameras is None:
+        return None
+    if isinstance(cameras, (str, bytes)) or hasattr(cameras, "__fspath__"):
+        from .cameras import load_cameras
+
+        return load_cameras(cameras)
+    cams = list(cameras)
+    if not cams:
+        raise ValueError("cameras is empty; give at least one camera (or None to use normals)")
+    return cams
+
+
+def _remove_outliers(points, method: str, radius, keep_components: int) -> np.ndarray:
+    from .preprocess import largest_components, statistical_outliers
+
+    if method == "largest":
+        if radius is None:
+            radius = 3.0 * mean_spacing(points)
+        kept, _ = largest_components(points, radius, keep=keep_components)
+        return kept
+    if method == "statistical":
+        kept, _ = statistical_outliers(points)
+        return kept
+    raise ValueError(f"outliers must be 'none', 'largest' or 'statistical', got {method!r}")
 
 
 def _kernel_params(basis, delta, tau, sigma) -> dict:

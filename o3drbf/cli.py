@@ -46,13 +46,22 @@ def build_parser() -> argparse.ArgumentParser:
         description="Reconstruct a closed mesh from a point cloud (PLY, PCD, XYZ, XYZN, ...). "
         "Lengths (offsets, radii, delta, tau, lambda) refer to the data normalized into a 2x2x2 box.",
     )
-    rec.add_argument("input", help="point cloud file; normals are used when present, else estimated")
+    rec.add_argument(
+        "input",
+        help="point cloud file (normals used when present), or a file that holds points and cameras: "
+        "Stanford .conf (range scans), COLMAP text folder, Bundler bundle.out, o3drbf scan .json",
+    )
     rec.add_argument("-o", "--output", required=True, help="output mesh (.ply, .obj, .stl, .off, .gltf, .glb)")
     g = rec.add_argument_group("basis")
     g.add_argument("--basis", default=DEFAULTS["basis"], choices=["multiorder", "thinplate", "gaussian"])
     g.add_argument("--delta", type=float, default=DEFAULTS["delta"], help="multi-order: first-order weight, enters squared (default %(default)s)")
     g.add_argument("--tau", type=float, default=DEFAULTS["tau"], help="multi-order: third-order weight (default %(default)s)")
     g.add_argument("--sigma", type=float, default=DEFAULTS["sigma"], help="gaussian: width (default %(default)s)")
+    g = rec.add_argument_group("cameras and outliers")
+    g.add_argument("--cameras", metavar="FILE", help="cameras that saw the points (JSON, Middlebury *_par.txt, COLMAP folder, bundle.out, .conf): exterior constraints go toward them")
+    g.add_argument("--outliers", default="none", choices=["none", "largest", "statistical"], help="keep the largest connected component (or Open3D statistical removal) first (default %(default)s)")
+    g.add_argument("--outlier-radius", type=float, default=None, help="neighbourhood radius for --outliers largest, data units (default: 3 mean spacings)")
+    g.add_argument("--keep-components", type=_positive_int, default=1, help="components kept by --outliers largest (default %(default)s)")
     g = rec.add_argument_group("constraints")
     g.add_argument("--lambda-surface", type=float, default=DEFAULTS["lambda_surface"], help="smoothing of surface constraints, >= 0 (default %(default)s)")
     g.add_argument("--lambda-exterior", type=float, default=DEFAULTS["lambda_exterior"], help="smoothing of exterior constraints (default %(default)s)")
@@ -116,13 +125,24 @@ def _reconstruct(args) -> int:
             raise ValueError(f"--save-model must end in .npz, got {args.save_model!r}")
         if model.resolve() == Path(args.input).resolve():
             raise ValueError("--save-model is the input file; choose another name (inputs are never overwritten)")
-    points, normals, _ = io.read_points(args.input)
-    if normals is None:
+    points, normals, cameras, point_camera = _read_input(args.input)
+    if args.cameras:
+        if cameras is not None:
+            raise ValueError(f"{args.input} already holds cameras; drop --cameras")
+        from .cameras import load_cameras
+
+        cameras = load_cameras(args.cameras)
+    if normals is None and cameras is None:
         log.warning("%s has no normals: estimating and orienting them with Open3D", args.input)
     progress = not args.quiet
     result = reconstruct(
         points,
         normals,
+        cameras=cameras,
+        point_camera=point_camera,
+        outliers=args.outliers,
+        outlier_radius=args.outlier_radius,
+        keep_components=args.keep_components,
         basis=args.basis,
         delta=args.delta,
         tau=args.tau,
@@ -147,6 +167,30 @@ def _reconstruct(args) -> int:
     return 0
 
 
+_CAMERA_INPUTS = (".conf", ".out", ".json")
+
+
+def _read_input(path: str):
+    """Points, normals, cameras and the per-point camera index from INPUT."""
+    from . import io
+
+    p = Path(path)
+    if p.is_dir() or p.suffix.lower() in _CAMERA_INPUTS:
+        from .cameras import load_cameras
+
+        if not p.exists():
+            raise FileNotFoundError(f"input not found: {p}")
+        cams = load_cameras(p, read_scans=True) if p.suffix.lower() == ".conf" else load_cameras(p)
+        if cams.points is None or len(cams.points) == 0:
+            raise ValueError(f"{p} holds cameras but no points; give a point cloud as INPUT and this file as --cameras")
+        pc = cams.point_camera
+        if pc is not None and (pc < 0).all():
+            pc = None
+        return cams.points, None, cams, pc
+    points, normals, _ = io.read_points(p)
+    return points, normals, None, None
+
+
 def summary(result, points, input_path, output_path, model_path=None, seconds=None) -> str:
     """The closing summary: what went in, what came out, and how well it fits."""
     from .metrics import fitness_error, mesh_report
@@ -157,7 +201,8 @@ def summary(result, points, input_path, output_path, model_path=None, seconds=No
     scale = result.surface.normalization.scale
     lines = [
         f"o3drbf reconstruct: {input_path} -> {output_path}",
-        f"  points           {s['points']:,}" + ("  (normals estimated)" if s["normals_estimated"] else ""),
+        f"  points           {s['points']:,}" + ("  (normals estimated)" if s["normals_estimated"] else "")
+        + (f", {s['outliers_removed']:,} outliers removed" if s.get("outliers_removed") else ""),
         f"  constraints      {s['surface_constraints']:,} surface, {s['exterior_constraints']:,} exterior, {s['sphere_constraints']:,} sphere",
         f"  mean spacing     {s['mean_spacing']:.4g} (data units), {s['mean_spacing_box']:.4f} in the 2x2x2 box",
         f"  basis            {s['basis']}",
@@ -167,6 +212,10 @@ def summary(result, points, input_path, output_path, model_path=None, seconds=No
         f"  watertight       {'yes' if rep['watertight'] else 'NO'} (edge-manifold, closed), Euler characteristic {rep['euler_characteristic']}, {rep['components']} component(s)",
         f"  fitness error    mean {fit['mean']:.3g}, RMS {fit['rms']:.3g}, max {fit['max']:.3g} (data units; mean {fit['mean'] * scale:.2e} in the box)",
     ]
+    if s.get("cameras"):
+        seen = s["points_seen_per_camera"]
+        shown = ", ".join(f"{v:,}" for v in seen[:12]) + (", ..." if len(seen) > 12 else "")
+        lines.insert(3, f"  cameras          {s['cameras']}; surface constraints seen per camera: {shown}")
     if model_path:
         lines.append(f"  model            {model_path}")
     if seconds is not None:
