@@ -4,7 +4,7 @@ SETUP   := .venv/.installed
 OUT     ?= out
 export OMP_NUM_THREADS ?= 2
 
-.PHONY: setup demo test bench bench-paper clean
+.PHONY: setup demo test bench figures clean
 
 setup: $(SETUP)
 
@@ -19,6 +19,10 @@ test: $(SETUP)
 
 bench: $(SETUP)
 	$(PY) benchmarks/run.py
+
+figures: $(SETUP)
+	$(PY) samples/demo.py --out $(OUT)/figures
+	mkdir -p docs/images && cp $(OUT)/figures/demo.png docs/images/demo.png
 
 clean:
 	rm -rf $(OUT) .pytest_cache
