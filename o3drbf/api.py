@@ -228,6 +228,8 @@ def reconstruct(
     if surface_radius is not None:
         surface_radius = check_number("surface_radius", surface_radius, low=0.0, high=2.0, low_open=True)
         surface_count = None
+    elif surface_count is None:
+        log.info("surface_count=None: every point is a surface constraint")
 
     cams = _cameras(cameras)
     if point_camera is not None:

@@ -66,6 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--lambda-surface", type=float, default=DEFAULTS["lambda_surface"], help="smoothing of surface constraints, >= 0 (default %(default)s)")
     g.add_argument("--lambda-exterior", type=float, default=DEFAULTS["lambda_exterior"], help="smoothing of exterior constraints (default %(default)s)")
     g.add_argument("--surface-count", type=_positive_int, default=DEFAULTS["surface_count"], help="Poisson-disc subsample to about N surface constraints (default %(default)s)")
+    g.add_argument("--surface-radius", type=float, default=None, help="Poisson-disc radius (box units) instead of --surface-count")
     g.add_argument("--all-points", action="store_true", help="use every point as a surface constraint (no subsampling)")
     g.add_argument("--exterior-ratio", type=float, default=DEFAULTS["exterior_ratio"], help="exterior constraints per surface constraint (default %(default)s)")
     g.add_argument("--exterior-offset", type=float, default=DEFAULTS["exterior_offset"], help="distance of exterior constraints from the surface (default %(default)s)")
@@ -150,6 +151,7 @@ def _reconstruct(args) -> int:
         lambda_surface=args.lambda_surface,
         lambda_exterior=args.lambda_exterior,
         surface_count=None if args.all_points else args.surface_count,
+        surface_radius=args.surface_radius,
         exterior_ratio=args.exterior_ratio,
         exterior_offset=args.exterior_offset,
         sphere_count=args.sphere_count,

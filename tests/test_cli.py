@@ -43,6 +43,17 @@ def test_output_format_follows_extension(scan, ext):
     assert len(o3d.io.read_triangle_mesh(str(out)).triangles) > 100
 
 
+def test_surface_radius_and_all_points(scan, capsys):
+    out = scan / "radius.ply"
+    assert main(["reconstruct", str(scan / "torus.ply"), "-o", str(out), "--surface-radius", "0.1", "--resolution", "24"]) == 0
+    text = capsys.readouterr().out
+    n = int(text.split("constraints")[1].split("surface")[0].replace(",", ""))
+    # torus area in the box ~ 4 pi^2 R r scaled; discs of radius 0.05 are disjoint: n < area / (pi 0.05^2)
+    assert 150 < n < 1100
+    assert main(["reconstruct", str(scan / "torus.ply"), "-o", str(out), "--all-points", "--resolution", "24", "--solver", "dense"]) == 0
+    assert "4,000 surface" in capsys.readouterr().out
+
+
 def test_points_without_normals(scan, capsys, caplog):
     out = scan / "nonormals.ply"
     assert main(["reconstruct", str(scan / "torus.xyz"), "-o", str(out), "--surface-count", "400", "--resolution", "32"]) == 0
