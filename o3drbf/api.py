@@ -98,8 +98,12 @@ def fit(constraints: Constraints, kernel: Kernel, normalization: Normalization, 
     """Fit an implicit surface to constraints given in the normalized box."""
     sol = solve(kernel, constraints.points, constraints.values, constraints.smoothing, method=solver, progress=progress, **solve_options)
     surf = ImplicitSurface(kernel, constraints.points, sol.weights, sol.poly, normalization)
-    if sol.info.get("evaluator") is not None:
-        surf.evaluator = sol.info.pop("evaluator")
+    from .solve import FMM_EVALUATION_MIN
+
+    if sol.method == "fast" and len(constraints) >= FMM_EVALUATION_MIN:
+        from .fast import make_evaluator
+
+        surf.evaluator = make_evaluator(kernel, constraints.points, sol.weights)
     return surf, sol
 
 

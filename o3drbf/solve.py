@@ -25,6 +25,8 @@ import time
 import warnings
 from dataclasses import dataclass, field
 
+import logging
+
 import numpy as np
 import scipy.linalg as sla
 from scipy.sparse.linalg import LinearOperator, gmres
@@ -37,6 +39,13 @@ __all__ = ["Solution", "solve", "available_memory", "dense_memory", "Convergence
 
 #: Solver methods. "fast" (fast multipole + preconditioned Krylov) is in o3drbf.fast.
 METHODS = ("auto", "dense", "iterative", "fast")
+
+log = logging.getLogger("o3drbf")
+
+#: Above this many centres a fast-solved surface is evaluated by fast multipole
+#: sums too (below it the compiled direct sum is as fast: measured 14.1 s vs
+#: 14.4 s for 200,000 targets x 3,400 centres).
+FMM_EVALUATION_MIN = 20_000
 
 
 class ConvergenceWarning(UserWarning):
@@ -83,7 +92,7 @@ def solve(
     values,
     smoothing=0.0,
     method: str = "auto",
-    rtol: float = 1e-10,
+    rtol: float | None = None,
     max_iterations: int = 1000,
     memory_limit: int | None = None,
     progress: bool = False,
@@ -105,8 +114,10 @@ def solve(
         matrix-free one when the matrix does not fit).  "fast": fast
         multipole products and a preconditioned Krylov solve
         (:mod:`o3drbf.fast`).  "auto": dense when it fits in memory.
-    rtol : float
+    rtol : float, optional
         Relative residual target for the iterative methods, in (0, 1).
+        Default 1e-10 for "iterative", 1e-6 for "fast" (a mesh needs far
+        less; the multipole tolerance follows it).
     max_iterations : int
     memory_limit : int, optional
         Bytes the dense solve may use; default 80% of available memory.
@@ -135,7 +146,8 @@ def solve(
         raise ValueError("values contain NaN or infinity")
     lam = per_point("smoothing", smoothing, n, low=0.0)
     check_choice("method", method, METHODS)
-    rtol = check_number("rtol", rtol, low=0.0, high=1.0, low_open=True)
+    if rtol is not None:
+        rtol = check_number("rtol", rtol, low=0.0, high=1.0, low_open=True)
     q = polynomial_basis(centres, kernel.polynomial_degree)
     m = q.shape[1]
     if n < m + 1:
@@ -147,6 +159,10 @@ def solve(
 
     if method == "auto":
         method = "dense" if need <= limit else "fast"
+        log.info(
+            "solver: %s (a dense solve of %d constraints needs %s; limit %s)",
+            method, n, _gb(need), _gb(limit),
+        )
     if method == "dense" and need > limit:
         raise MemoryError(
             f"a dense solve of {n} constraints needs about {_gb(need)} but the limit is {_gb(limit)}; "
@@ -155,14 +171,16 @@ def solve(
     if method == "fast":
         from . import fast  # imported lazily: optional dependency
 
-        sol = fast.solve(kernel, centres, y, lam, rtol=rtol, max_iterations=max_iterations, progress=progress)
+        log.info("solver: fast multipole + two-level preconditioned FGMRES (%d constraints)", n)
+        sol = fast.solve(kernel, centres, y, lam, rtol=1e-6 if rtol is None else rtol,
+                         max_iterations=min(max_iterations, 200), progress=progress)
         sol.seconds = time.perf_counter() - t0
         return sol
     if method == "dense":
         w, p, info = _solve_dense(kernel, centres, y, lam, q)
         iterations = 0
     else:
-        w, p, iterations, info = _solve_gmres(kernel, centres, y, lam, q, rtol, max_iterations, need <= limit, progress)
+        w, p, iterations, info = _solve_gmres(kernel, centres, y, lam, q, 1e-10 if rtol is None else rtol, max_iterations, need <= limit, progress)
     residual = relative_residual(kernel, centres, y, lam, q, w, p)
     sol = Solution(w, p, method, residual, time.perf_counter() - t0, iterations, info)
     if method == "dense" and residual > 1e-6:

@@ -137,3 +137,14 @@ def test_oversmoothing_that_erases_the_surface_says_what_to_change():
     p, n = Torus(0.6, 0.25).sample(3000, seed=5)
     with pytest.raises(RuntimeError, match=r"No surface found.*lower lambda_surface"):
         o3drbf.reconstruct(p, n, lambda_surface=0.5, surface_count=500, resolution=32)
+
+
+def test_fast_solver_gives_the_dense_surface():
+    p, n = Torus(0.6, 0.25).sample(6000, seed=11)
+    kw = dict(surface_count=2000, extract=False)
+    dense = o3drbf.reconstruct(p, n, solver="dense", **kw)
+    fast = o3drbf.reconstruct(p, n, solver="fast", **kw)
+    assert fast.stats["solver"] == "fast" and fast.stats["iterations"] > 0
+    probe = np.random.default_rng(0).uniform(-1, 1, (2000, 3))
+    fd, ff = dense.surface(probe), fast.surface(probe)
+    assert np.max(np.abs(ff - fd)) < 1e-4 * np.max(np.abs(fd))  # rtol 1e-6 solve, ~100x amplification in f

@@ -1,0 +1,260 @@
+"""Fast products, fast solve and fast evaluator (o3drbf.fast) against the dense reference."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+pytest.importorskip("fmm3dpy")
+
+from o3drbf import fast  # noqa: E402
+from o3drbf.kernels import Gaussian, MultiOrder, ThinPlate  # noqa: E402
+from o3drbf.shapes import Torus  # noqa: E402
+from o3drbf.solve import ConvergenceWarning, solve  # noqa: E402
+from o3drbf.sums import kernel_matrix, kernel_sum  # noqa: E402
+
+
+def torus_problem(n, seed=0, offset=0.05):
+    """Torus surface constraints (f = 0, lambda 1e-3) + 10% exterior ones (f = -1, lambda 2)."""
+    ns = int(round(n / 1.1))
+    ne = n - ns
+    p, nrm = Torus().sample(ns, seed=seed)
+    idx = np.random.default_rng(seed + 1).choice(ns, ne, replace=False)
+    c = np.vstack([p, p[idx] + offset * nrm[idx]])
+    y = np.r_[np.zeros(ns), -np.ones(ne)]
+    lam = np.r_[np.full(ns, 1e-3), np.full(ne, 2.0)]
+    return c, y, lam
+
+
+class DenseSum:
+    """The FastSum interface on a dense matrix: isolates the preconditioner from FMM error."""
+
+    def __init__(self, kernel, centres):
+        self.kernel, self.centres, self.n = kernel, centres, len(centres)
+        self.matrix = kernel_matrix(kernel, centres, order="C")
+        self.phi0 = kernel.value_at_zero
+        self.eps = 1e-15
+        self.info = {"mode": "dense"}
+        from scipy.spatial import cKDTree
+
+        self.tree = cKDTree(centres)
+
+    def matvec(self, w, eps=None):
+        return self.matrix @ w
+
+    def from_subset(self, subset):
+        cols = self.matrix[:, subset]
+        return lambda w, eps=None: cols @ w
+
+    def evaluate(self, w, targets, gradient=False, eps=None, subset=None):
+        cen = self.centres if subset is None else self.centres[subset]
+        return kernel_sum(self.kernel, cen, w, targets, gradient=gradient)
+
+
+KERNELS = {
+    "multiorder-10": MultiOrder(10.0, 0.01),
+    "multiorder-3.16": MultiOrder(10**0.5, 0.01),
+    "multiorder-complex": MultiOrder(40.0, 0.025),
+    "gaussian": Gaussian(0.05),
+}
+
+
+@pytest.fixture(scope="module")
+def problem3k():
+    return torus_problem(3000)
+
+
+@pytest.fixture(scope="module")
+def dense3k(problem3k):
+    """Dense kernel matrices, built once per kernel."""
+    cache = {}
+
+    def get(name):
+        if name not in cache:
+            cache[name] = kernel_matrix(KERNELS[name], problem3k[0])
+        return cache[name]
+
+    return get
+
+
+# -- products -----------------------------------------------------------------------------
+@pytest.mark.parametrize("name", list(KERNELS))
+@pytest.mark.parametrize("eps", [1e-4, 1e-8])
+def test_product_matches_dense(problem3k, dense3k, name, eps):
+    kernel = KERNELS[name]
+    c = problem3k[0]
+    w = np.random.default_rng(7).normal(size=len(c))
+    ref = dense3k(name) @ w
+    got = fast.FastSum(kernel, c, eps=eps).matvec(w)
+    err = np.linalg.norm(got - ref) / np.linalg.norm(ref)
+    # fmm3dpy and the truncations deliver ~eps/30; allow eps itself.
+    assert err < eps, f"{name}: relative error {err:.1e} at eps {eps:g}"
+
+
+def test_short_range_term_is_sparse_and_complex_case_is_one_pair(problem3k):
+    c = problem3k[0]
+    real = fast.FastSum(MultiOrder(10.0, 0.01), c, eps=1e-6)
+    assert real._short is not None and real.info["short_nnz"] > 0
+    assert len(real._terms) == 1  # Laplace + medium Yukawa by FMM only
+    cplx = fast.FastSum(MultiOrder(40.0, 0.025), c, eps=1e-6)
+    assert cplx._short is None and len(cplx._terms) == 1 and cplx._terms[0][2]
+
+
+def test_sparse_budget_falls_back_to_fmm(problem3k, dense3k):
+    c = problem3k[0]
+    kernel = KERNELS["multiorder-10"]
+    w = np.random.default_rng(8).normal(size=len(c))
+    fs = fast.FastSum(kernel, c, eps=1e-6, sparse_budget=10)
+    assert fs._short is None and len(fs._terms) == 2
+    ref = dense3k("multiorder-10") @ w
+    assert np.linalg.norm(fs.matvec(w) - ref) / np.linalg.norm(ref) < 1e-6
+
+
+@pytest.mark.parametrize("name", ["multiorder-10", "multiorder-complex", "gaussian"])
+def test_sum_from_a_subset_of_centres(problem3k, dense3k, name):
+    """The preconditioner's coarse-to-fine update (Phi[:, C] z_C) when the block is not stored."""
+    kernel = KERNELS[name]
+    c = problem3k[0]
+    subset = np.sort(np.random.default_rng(13).choice(len(c), 300, replace=False))
+    z = np.random.default_rng(14).normal(size=300)
+    got = fast.FastSum(kernel, c, eps=1e-6).from_subset(subset)(z)
+    ref = dense3k(name)[:, subset] @ z
+    assert np.linalg.norm(got - ref) / np.linalg.norm(ref) < 1e-6
+
+
+def test_helper_process_gives_the_same_product():
+    c = torus_problem(1500, seed=15)[0]
+    w = np.random.default_rng(16).normal(size=len(c))
+    kernel = KERNELS["multiorder-10"]
+    one = fast.FastSum(kernel, c, eps=1e-6, workers=1).matvec(w)
+    two = fast.FastSum(kernel, c, eps=1e-6, workers=2).matvec(w)
+    np.testing.assert_allclose(two, one, rtol=1e-12, atol=1e-14 * np.abs(one).max())
+
+
+def test_duplicate_centres_keep_the_self_term():
+    c = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.3, 0.1, -0.2], [0.5, 0.5, 0.5]])
+    kernel = MultiOrder(10.0, 0.01)
+    w = np.array([1.0, -2.0, 0.5, 0.25])
+    got = fast.FastSum(kernel, c, eps=1e-8).matvec(w)
+    np.testing.assert_allclose(got, kernel_matrix(kernel, c) @ w, rtol=1e-7)
+
+
+def test_confluent_kernel_is_refused():
+    with pytest.raises(ValueError, match="confluent"):
+        fast.FastSum(MultiOrder(20.0, 0.025), np.random.default_rng(0).uniform(-1, 1, (50, 3)))
+
+
+def test_too_wide_gaussian_is_refused(problem3k):
+    with pytest.raises(ValueError, match="sigma"):
+        fast.FastSum(Gaussian(1.0), problem3k[0], sparse_budget=10**5)
+
+
+# -- evaluator ----------------------------------------------------------------------------
+@pytest.mark.parametrize("name", ["multiorder-10", "multiorder-complex", "gaussian"])
+def test_evaluator_values_and_gradients(problem3k, name):
+    kernel = KERNELS[name]
+    c = problem3k[0]
+    w = np.random.default_rng(9).normal(size=len(c))
+    rng = np.random.default_rng(10)
+    m = 2000
+    targets = np.vstack([rng.uniform(-1.1, 1.1, (m, 3)), c[:20], c[100:120] + 1e-3])
+    ev = fast.make_evaluator(kernel, c, w, eps=1e-6)
+    vals, grads = ev(targets, True)
+    ref_v, ref_g = kernel_sum(kernel, c, w, targets, gradient=True)
+    assert np.linalg.norm(vals - ref_v) / np.linalg.norm(ref_v) < 1e-6
+    assert np.linalg.norm(grads - ref_g) / np.linalg.norm(ref_g) < 1e-5
+    # targets on centres: the self term phi(0) is included
+    np.testing.assert_allclose(vals[m : m + 20], ref_v[m : m + 20], rtol=1e-5, atol=1e-7 * np.abs(ref_v).max())
+    np.testing.assert_allclose(ev(targets[:300], False), ref_v[:300], rtol=1e-5, atol=1e-7 * np.abs(ref_v).max())
+
+
+def test_evaluator_chunks_and_thinplate_direct(problem3k):
+    c = problem3k[0][:500]
+    w = np.random.default_rng(11).normal(size=len(c))
+    targets = np.random.default_rng(12).uniform(-1, 1, (1000, 3))
+    ev = fast.make_evaluator(MultiOrder(10.0, 0.01), c, w, eps=1e-8, chunk=400)
+    ref = kernel_sum(MultiOrder(10.0, 0.01), c, w, targets)
+    assert np.linalg.norm(ev(targets) - ref) / np.linalg.norm(ref) < 1e-7
+    tp = fast.make_evaluator(ThinPlate(), c, w)
+    np.testing.assert_allclose(tp(targets), kernel_sum(ThinPlate(), c, w, targets), rtol=1e-12)
+
+
+# -- solve --------------------------------------------------------------------------------
+def _agreement(kernel, n, rtol, seed=2):
+    c, y, lam = torus_problem(n, seed=seed)
+    dense = solve(kernel, c, y, lam, method="dense")
+    sol = fast.solve(kernel, c, y, lam, rtol=rtol, preconditioner={"exact_below": 0})
+    assert sol.method == "fast" and sol.residual <= rtol and sol.info["converged"]
+    assert sol.info["preconditioner"]["coarse"] < 0.2 * len(c)
+    assert sol.info["constraint"] < 1e-12  # Q^T w = 0 exactly (constraint preconditioner)
+    x = np.random.default_rng(3).uniform(-1, 1, (10000, 3))
+    f_dense = kernel_sum(kernel, c, dense.weights, x) + dense.poly[0]
+    f_fast = kernel_sum(kernel, c, sol.weights, x) + sol.poly[0]
+    err = np.abs(f_fast - f_dense).max() / np.abs(f_dense).max()
+    assert err < 1e-6, f"max relative difference {err:.1e}"
+    return sol
+
+
+@pytest.mark.parametrize("name,n,rtol", [("multiorder-10", 3300, 1e-8), ("multiorder-complex", 1600, 1e-9)])
+def test_fast_solve_matches_dense(name, n, rtol):
+    """f at 10,000 test points agrees with the dense (Cholesky) fit to 1e-6 relative,
+    with the two-level preconditioner forced on (coarse N/8).  The residual-to-f
+    amplification is ~100 for delta 10 and ~200 for the complex case (measured:
+    rtol 1e-8 gave 1.9e-6 there), hence its tighter rtol."""
+    _agreement(KERNELS[name], n, rtol)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(os.environ.get("O3DRBF_SLOW") != "1", reason="N = 8,000 proof of issue 4 (~1-2 min): set O3DRBF_SLOW=1")
+def test_fast_solve_matches_dense_8k():
+    """Issue 4's proof: at N = 8,000 the fast f matches the dense one to 1e-6 at 10,000 points."""
+    _agreement(KERNELS["multiorder-10"], 8000, 1e-8)
+
+
+def test_solve_entry_point_and_gaussian():
+    kernel = Gaussian(0.08)
+    c, y, lam = torus_problem(2000, seed=4)
+    sol = solve(kernel, c, y, lam, method="fast", rtol=1e-8, progress=True)
+    dense = solve(kernel, c, y, lam, method="dense")
+    assert sol.method == "fast" and sol.residual <= 1e-8
+    np.testing.assert_allclose(sol.weights, dense.weights, rtol=0, atol=1e-5 * np.abs(dense.weights).max())
+
+
+def test_unreachable_tolerance_warns_with_residual():
+    c, y, lam = torus_problem(2000, seed=5)
+    with pytest.warns(ConvergenceWarning, match=r"residual \d\.\d+e-\d+"):
+        sol = fast.solve(MultiOrder(10.0, 0.01), c, y, lam, rtol=1e-10, max_iterations=2,
+                         preconditioner={"exact_below": 0})
+    assert sol.iterations == 2 and sol.residual > 1e-10 and not sol.info["converged"]
+
+
+def test_thinplate_is_refused():
+    with pytest.raises(ValueError, match="thinplate"):
+        fast.solve(ThinPlate(), np.random.default_rng(0).uniform(-1, 1, (100, 3)), np.zeros(100), 0.0)
+
+
+def test_memory_refused_up_front():
+    c, y, lam = torus_problem(500)
+    with pytest.raises(MemoryError, match="limit"):
+        fast.solve(MultiOrder(), c, y, lam, memory_limit=10**6)
+
+
+def test_iteration_count_nearly_flat():
+    """FGMRES iterations to 1e-6 at N = 2,000 and 8,000, coarse level N/8.
+
+    Measured (this preconditioner): 8-9 and 10.  Near-field alone gives 16 -> 28
+    (x1.75), Jacobi 57 -> 85 (measurements.md): the two-level count must stay
+    within x1.4 and below 15.  Dense products isolate the preconditioner from FMM
+    error (the FMM products gave the same counts at 4k)."""
+    kernel = MultiOrder(10.0, 0.01)
+    counts = []
+    for n in (2000, 8000):
+        c, y, lam = torus_problem(n, seed=6)
+        sol = fast.solve(kernel, c, y, lam, rtol=1e-6, operator=DenseSum(kernel, c),
+                         preconditioner={"exact_below": 0, "max_coarse": n // 8})
+        assert sol.info["converged"]
+        counts.append(sol.iterations)
+    assert max(counts) < 15, counts
+    assert counts[1] <= 1.4 * counts[0], counts
