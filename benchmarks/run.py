@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import sys
 import time
@@ -31,7 +32,11 @@ def main(argv=None) -> int:
         script = HERE / SUITES[name][0]
         print(f"\n=== {name}: {script.name} ===", flush=True)
         t0 = time.perf_counter()
-        code = subprocess.call([sys.executable, str(script), "--threads", str(args.threads)])
+        env = dict(os.environ)
+        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS", "MKL_NUM_THREADS"):
+            env[var] = str(args.threads)
+        print(f"threads: {args.threads} (OMP/OpenBLAS/Numba)", flush=True)
+        code = subprocess.call([sys.executable, str(script)], env=env)
         print(f"({name}: {time.perf_counter() - t0:.0f} s, exit {code})", flush=True)
         if code:
             failed.append(name)
