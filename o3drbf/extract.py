@@ -258,8 +258,7 @@ def extract_mesh(
         return surface.evaluate_box(pts)
 
     vals, _ = evaluate_grid(func, origin, h, shape, level=level, band=band, progress=progress)
-    vals = vals - level
-    vals[vals == 0] = -1e-12  # no vertex exactly on a grid point: no degenerate triangles
+    vals = _keep_off_corners(vals - level)
     if closed:
         for axis in range(3):
             for end in (0, -1):
@@ -284,15 +283,37 @@ def extract_mesh(
         o3d.utility.Vector3iVector(faces.astype(np.int32)),
     )
     mesh.vertex_normals = o3d.utility.Vector3dVector(np.ascontiguousarray(vnormals, dtype=float))
-    _clean(mesh, 1e-2 * h / norm.scale)
+    mesh.remove_degenerate_triangles()
+    mesh.remove_unreferenced_vertices()
     return mesh
 
 
-def _clean(mesh, weld: float) -> None:
-    """Weld vertices closer than ``weld`` (marching cubes' needle triangles,
-    with an edge of ~1e-5 cells, make Open3D's self-intersection test fire),
-    then drop the triangles that became degenerate or duplicated."""
-    mesh.merge_close_vertices(weld)
-    mesh.remove_degenerate_triangles()
-    mesh.remove_duplicated_triangles()
-    mesh.remove_unreferenced_vertices()
+#: Smallest |f| kept at a grid point, as a fraction of the typical change of f
+#: along a crossing edge: marching cubes then puts every vertex at least ~this
+#: fraction of an edge away from a grid corner.
+_CORNER_GAP = 1e-3
+
+
+def _keep_off_corners(d: np.ndarray) -> np.ndarray:
+    """Move values very close to 0 to +-eps, keeping their signs (0 counts as outside).
+
+    Without this, a vertex lands within ~1e-5 cells of a grid corner and
+    forms needle triangles that Open3D's self-intersection test flags.
+    Welding such vertices afterwards can join different sheets of the
+    surface; changing values without changing signs keeps marching cubes'
+    topology (and so a closed, manifold mesh) exactly.
+    """
+    steps = []
+    for axis in range(3):
+        a = np.moveaxis(d, axis, 0)
+        lo, hi = a[:-1], a[1:]
+        cross = (lo < 0) != (hi < 0)
+        steps.append(np.abs(hi - lo)[cross])
+    steps = np.concatenate(steps)
+    if steps.size == 0:
+        return d
+    eps = _CORNER_GAP * float(np.median(steps))
+    out = d.copy()
+    small = np.abs(out) < eps
+    out[small] = np.where(out[small] > 0, eps, -eps)
+    return out
