@@ -235,7 +235,7 @@ def reconstruct(
     elif surface_count is None:
         log.info("surface_count=None: every point is a surface constraint")
 
-    cams = _cameras(cameras)
+    cams, camera_source = _cameras(cameras)
     if point_camera is not None:
         point_camera = np.asarray(point_camera)
         if point_camera.shape != (n,) or not np.issubdtype(point_camera.dtype, np.integer):
@@ -272,15 +272,20 @@ def reconstruct(
     if cams is not None:
         from .visibility import exterior_constraints
 
-        ext_data, camera_info = exterior_constraints(
-            pts[idx],
-            cams,
-            offset=exterior_offset / norm.scale,
-            ratio=max(exterior_ratio, 1e-9),
-            seed=seed,
-            occluder=pts,
-            point_camera=None if point_camera is None else point_camera[idx],
-        )
+        try:
+            ext_data, camera_info = exterior_constraints(
+                pts[idx],
+                cams,
+                offset=exterior_offset / norm.scale,
+                ratio=max(exterior_ratio, 1e-9),
+                seed=seed,
+                occluder=pts,
+                point_camera=None if point_camera is None else point_camera[idx],
+            )
+        except ValueError as exc:
+            if camera_source:
+                raise ValueError(f"{camera_source}: {exc}") from None
+            raise
         ext = norm.forward(ext_data) if exterior_ratio > 0 else np.zeros((0, 3))
     else:
         n_ext = int(round(exterior_ratio * len(idx)))
@@ -355,17 +360,19 @@ def reconstruct(
 
 
 def _cameras(cameras):
-    """None, a sequence of Camera, a CameraSet, or a camera file path."""
+    """(list of Camera or None, the file they came from or "") from None, a
+    sequence of Camera, a CameraSet, or a camera file path."""
     if cameras is None:
-        return None
+        return None, ""
     if isinstance(cameras, (str, bytes)) or hasattr(cameras, "__fspath__"):
         from .cameras import load_cameras
 
-        return load_cameras(cameras)
+        cameras = load_cameras(cameras)
+    source = str(getattr(cameras, "source", "") or "")
     cams = list(cameras)
     if not cams:
-        raise ValueError("cameras is empty; give at least one camera (or None to use normals)")
-    return cams
+        raise ValueError(f"{source + ': ' if source else ''}cameras is empty; give at least one camera (or None to use normals)")
+    return cams, source
 
 
 def _remove_outliers(points, method: str, radius, keep_components: int) -> np.ndarray:

@@ -212,7 +212,6 @@ def test_bad_input_exits_2_with_one_line(bad, case, capsys):
     assert not out.exists()
 
 
-@pytest.mark.xfail(strict=True, reason="visibility errors do not name the camera file yet (reported to the lead)")
 @pytest.mark.parametrize("case", ["camera sees no point (--cameras)", "points behind every camera"])
 def test_visibility_errors_name_the_camera_file(bad, case, capsys):
     d, cases = bad
