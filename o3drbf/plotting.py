@@ -30,7 +30,7 @@ def to_pyvista(mesh):
     return pv.PolyData(v, faces)
 
 
-def side_by_side(panels, path: str | os.PathLike, window_size=(1600, 800), points=None, view=(1.0, -1.2, 0.9)) -> Path:
+def side_by_side(panels, path: str | os.PathLike, window_size=(1600, 800), points=None, view=(1.0, -1.2, 0.9), viewup=(0.0, 0.0, 1.0)) -> Path:
     """Render meshes side by side from the same viewpoint into a PNG (offscreen).
 
     Parameters
@@ -42,6 +42,8 @@ def side_by_side(panels, path: str | os.PathLike, window_size=(1600, 800), point
         Input points, drawn small in the first panel.
     view : 3-tuple
         Camera direction from the centre of the scene.
+    viewup : 3-tuple
+        The data's up axis (e.g. (0, 1, 0) for the Stanford bunny).
     """
     _headless()
     import pyvista as pv
@@ -58,7 +60,7 @@ def side_by_side(panels, path: str | os.PathLike, window_size=(1600, 800), point
         if points is not None and i == 0:
             plotter.add_points(np.asarray(points), color="#cc3311", point_size=2, render_points_as_spheres=False)
         plotter.add_text(title, font_size=11, color="black")
-        plotter.view_vector(view)
+        plotter.view_vector(view, viewup=viewup)
     plotter.link_views()
     with atomic_path(path) as tmp:
         plotter.screenshot(tmp)

@@ -165,9 +165,10 @@ def range_scans(
     noise : float
         Standard deviation of Gaussian noise along each ray (mesh units).
     outliers : float in [0, 1)
-        Fraction of the returned points that are outliers, uniform in the
-        mesh's bounding box, each attributed to a random camera.  They are
-        the last rows.
+        Fraction of the returned points that are outliers: spurious returns
+        of a random camera, on one of its rays that hit the mesh, at a random
+        depth between 30% and 97% of the true one (in the free space that
+        camera saw, so "seen by its camera" stays true).  They are the last rows.
     seed : int
 
     Returns
@@ -190,7 +191,7 @@ def range_scans(
     rng = np.random.default_rng(seed)
     import open3d as o3d
 
-    parts, owner = [], []
+    parts, owner, hits = [], [], []
     for k, cam in enumerate(cams):
         u, w = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
         pix = np.stack([u.ravel(), w.ravel(), np.ones(u.size)], axis=1)
@@ -204,13 +205,27 @@ def range_scans(
             depth = depth + rng.normal(0.0, noise, size=depth.shape)
         parts.append(cam.center + d[ok] * depth[:, None])
         owner.append(np.full(int(ok.sum()), k, dtype=np.int64))
+        hits.append((d[ok], hit[ok]))
     points = np.concatenate(parts)
     if not len(points):
         raise ValueError("no ray hits the mesh; check the camera distance and field of view")
     n_out = int(round(outliers / (1 - outliers) * len(points)))
     if n_out:
-        points = np.vstack([points, rng.uniform(lo, hi, size=(n_out, 3))])
-        owner.append(rng.integers(0, len(cams), size=n_out))
+        cam_of = rng.integers(0, len(cams), size=n_out)
+        extra = np.empty((n_out, 3))
+        for k in range(len(cams)):
+            sel = np.flatnonzero(cam_of == k)
+            dirs, t_hit = hits[k]
+            if not len(sel):
+                continue
+            if not len(t_hit):  # this camera saw nothing: give its outliers to camera 0's rays
+                cam_of[sel] = 0
+                dirs, t_hit = hits[0]
+            ray = rng.integers(0, len(t_hit), size=len(sel))
+            depth = t_hit[ray] * rng.uniform(0.3, 0.97, size=len(sel))
+            extra[sel] = cams[cam_of[sel[0]]].center + dirs[ray] * depth[:, None]
+        points = np.vstack([points, extra])
+        owner.append(cam_of)
     return points, np.concatenate(owner), cams
 
 

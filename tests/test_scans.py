@@ -59,9 +59,21 @@ def test_outlier_fraction_is_honoured():
     assert abs(n_out / len(points) - 0.1) < 1 / len(points)
     np.testing.assert_array_equal(points[: len(clean)], clean)  # outliers are the last rows
     out = points[len(clean) :]
-    assert (out >= -1.0 - 1e-9).all() and (out <= 1.0 + 1e-9).all()  # uniform in the bounding box
+    own = owner[len(clean) :]
     assert (distance_to(mesh, out) > 0.01).mean() > 0.9
-    assert set(np.unique(owner[len(clean) :])) <= {0, 1, 2}
+    assert set(np.unique(own)) <= {0, 1, 2}
+    # each outlier is a spurious return in its camera's free space: the ray
+    # from that camera through it meets the mesh only beyond it
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    centres = np.array([cams[k].center for k in own])
+    d = out - centres
+    dist = np.linalg.norm(d, axis=1)
+    rays = np.hstack([centres, d / dist[:, None]]).astype(np.float32)
+    t_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+    assert (t_hit > dist + 1e-4).all()
     with pytest.raises(ValueError, match="below 1"):
         range_scans(mesh, outliers=1.0)
 
