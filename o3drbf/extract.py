@@ -255,7 +255,7 @@ def extract_mesh(
     origin, h, shape = grid_for(box, resolution_, h_box, multiple=8 if band else 1)
 
     def func(pts):
-        return surface.evaluate_box(pts)
+        return surface.evaluate_box(pts, approximate=True)
 
     vals, _ = evaluate_grid(func, origin, h, shape, level=level, band=band, progress=progress)
     vals = _keep_off_corners(vals - level)
@@ -273,7 +273,7 @@ def extract_mesh(
     verts, faces, grid_normals, _ = marching_cubes(vals, level=0.0, spacing=(h, h, h), allow_degenerate=False)
     verts_box = verts + origin
     if normals == "exact":
-        _, g = surface.evaluate_box(verts_box, gradient=True)
+        _, g = surface.evaluate_box(verts_box, gradient=True, approximate=True)
         glen = np.linalg.norm(g, axis=1, keepdims=True)
         vnormals = np.where(glen > 0, -g / np.where(glen > 0, glen, 1), grid_normals)
     else:

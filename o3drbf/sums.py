@@ -58,6 +58,7 @@ def kernel_sum(
     gradient: bool = False,
     chunk_bytes: int = DEFAULT_CHUNK_BYTES,
     compiled: bool = True,
+    table=None,
 ):
     """sum_i w_i phi(|x - c_i|) at every target x, and optionally its gradient.
 
@@ -74,6 +75,11 @@ def kernel_sum(
     compiled : bool
         Use the compiled (Numba) loop when the kernel has one (no matrix is
         formed); ``False`` forces the NumPy reference path.
+    table : o3drbf._direct.KernelTable, optional
+        Evaluate the multi-order kernel from these tables instead (about
+        1e-9 relative in values, 1e-6 in gradients; 1.5x faster in the real
+        regime and 10-30x in the confluent and complex ones).  For meshing,
+        never for solving.
 
     Returns
     -------
@@ -83,6 +89,8 @@ def kernel_sum(
     centres = np.asarray(centres, dtype=float)
     weights = np.asarray(weights, dtype=float)
     targets = np.asarray(targets, dtype=float)
+    if table is not None:
+        return _direct.table_sum(table, centres, weights, targets, gradient=gradient)
     if compiled and _direct.supports(kernel):
         return _direct.direct_sum(kernel, centres, weights, targets, gradient=gradient)
     m = len(targets)

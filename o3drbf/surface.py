@@ -59,13 +59,18 @@ class ImplicitSurface:
         self.poly = np.ascontiguousarray(self.poly, dtype=float)
 
     # -- evaluation -------------------------------------------------------------
-    def evaluate_box(self, points, gradient: bool = False, chunk_bytes: int = DEFAULT_CHUNK_BYTES):
-        """f (and grad f) at points given in box coordinates."""
+    def evaluate_box(self, points, gradient: bool = False, chunk_bytes: int = DEFAULT_CHUNK_BYTES, approximate: bool = False):
+        """f (and grad f) at points given in box coordinates.
+
+        ``approximate=True`` lets the multi-order kernel come from cubic
+        tables (values ~1e-9 relative, gradients ~1e-6): what meshing uses.
+        """
         x = np.asarray(points, dtype=float).reshape(-1, 3)
         if self.evaluator is not None:
             out = self.evaluator(x, gradient)
         else:
-            out = kernel_sum(self.kernel, self.centres, self.weights, x, gradient=gradient, chunk_bytes=chunk_bytes)
+            table = self._table() if approximate else None
+            out = kernel_sum(self.kernel, self.centres, self.weights, x, gradient=gradient, chunk_bytes=chunk_bytes, table=table)
         q = polynomial_basis(x, self.kernel.polynomial_degree)
         if gradient:
             vals, grads = out
@@ -74,6 +79,15 @@ class ImplicitSurface:
                 grads = grads + self.poly[1:4]
             return vals, grads
         return out + q @ self.poly
+
+    def _table(self):
+        from . import _direct
+
+        if not _direct.supports_table(self.kernel):
+            return None
+        if getattr(self, "_kernel_table", None) is None or self._kernel_table[0] is not self.kernel:
+            self._kernel_table = (self.kernel, _direct.KernelTable(self.kernel))
+        return self._kernel_table[1]
 
     def __call__(self, points) -> np.ndarray:
         """f at ``points`` ((N, 3) or (3,), data coordinates); memory bounded for any N."""

@@ -19,7 +19,7 @@ class Analytic:
         self.metadata = {}
         self.centres = np.array([[-1.0, -1.0, -0.5], [1.0, 1.0, 0.5]])
 
-    def evaluate_box(self, x, gradient=False):
+    def evaluate_box(self, x, gradient=False, approximate=False):
         x = np.asarray(x, float)
         v = -self.shape.signed_distance(x)
         if not gradient:
