@@ -100,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "reconstruct":
             return _reconstruct(args)
-    except (ValueError, FileNotFoundError, MemoryError, RuntimeError, OSError) as exc:
+    except (ValueError, FileNotFoundError, MemoryError, RuntimeError, OSError, ImportError) as exc:
         print(f"o3drbf: error: {_one_line(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
