@@ -1,6 +1,7 @@
 """The ``o3drbf`` command line.
 
     o3drbf reconstruct INPUT -o OUTPUT [options]
+    o3drbf compare INPUT [--cameras F] [--truth MESH] [--methods ...] [-o DIR]
 
 Exit status 0 on success; 2 with a one-line reason on bad input or usage;
 1 on an unexpected failure.
@@ -80,6 +81,17 @@ def build_parser() -> argparse.ArgumentParser:
     g = rec.add_argument_group("output")
     g.add_argument("-q", "--quiet", action="store_true", help="no progress bars or summary")
     g.add_argument("-v", "--verbose", action="store_true", help="log each step")
+
+    from .compare import add_compare_arguments
+
+    add_compare_arguments(
+        sub.add_parser(
+            "compare",
+            help="run several methods on the same points: tables and a picture",
+            description="Run o3drbf's bases and Open3D's Poisson, ball pivoting and alpha shapes on the same data; "
+            "write comparison.md/.csv/.json and comparison.png.",
+        )
+    )
     return parser
 
 
@@ -100,6 +112,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "reconstruct":
             return _reconstruct(args)
+        if args.command == "compare":
+            from .compare import main_compare
+
+            return main_compare(args)
     except (ValueError, FileNotFoundError, MemoryError, RuntimeError, OSError, ImportError) as exc:
         print(f"o3drbf: error: {_one_line(exc)}", file=sys.stderr)
         return 2

@@ -106,3 +106,18 @@ def test_outputs_get_ordinary_permissions(scan):
     umask = os.umask(0)
     os.umask(umask)
     assert stat.S_IMODE(out.stat().st_mode) == 0o666 & ~umask
+
+
+def test_compare_subcommand(scan, tmp_path, capsys):
+    truth = o3d.geometry.TriangleMesh.create_torus(0.6, 0.25, 60, 30)
+    o3d.io.write_triangle_mesh(str(tmp_path / "truth.ply"), truth)
+    out = tmp_path / "cmp"
+    code = main(["compare", str(scan / "torus.ply"), "--truth", str(tmp_path / "truth.ply"), "--methods", "multiorder,poisson",
+                 "--resolution", "32", "-o", str(out)])
+    assert code == 0
+    names = sorted(f.name for f in out.iterdir())
+    assert names == ["comparison.csv", "comparison.json", "comparison.md", "comparison.png"]
+    table = (out / "comparison.md").read_text().splitlines()
+    assert table[0].startswith("| method") and len(table) == 4
+    assert main(["compare", str(scan / "torus.ply"), "--methods", "poisson,bogus", "-o", str(out)]) == 2
+    assert "valid methods" in capsys.readouterr().err
