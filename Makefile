@@ -4,7 +4,7 @@ SETUP   := .venv/.installed
 OUT     ?= out
 export OMP_NUM_THREADS ?= 2
 
-.PHONY: setup demo test bench figures clean
+.PHONY: setup demo test bench bench-paper figures clean
 
 setup: $(SETUP)
 
@@ -19,6 +19,9 @@ test: $(SETUP)
 
 bench: $(SETUP)
 	$(PY) benchmarks/run.py
+
+bench-paper: $(SETUP)
+	$(PY) benchmarks/paper/run_all.py --out results/paper
 
 figures: $(SETUP)
 	$(PY) samples/demo.py --out $(OUT)/figures
