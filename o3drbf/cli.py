@@ -2,6 +2,8 @@
 
     o3drbf reconstruct INPUT -o OUTPUT [options]
     o3drbf compare INPUT [--cameras F] [--truth MESH] [--methods ...] [-o DIR]
+    o3drbf view INPUT [--cameras F] [--screenshot PNG]
+    o3drbf photos IMAGES_DIR --calibration FILE -o MODEL.ply
 
 Exit status 0 on success; 2 with a one-line reason on bad input or usage;
 1 on an unexpected failure.
@@ -92,7 +94,35 @@ def build_parser() -> argparse.ArgumentParser:
             "write comparison.md/.csv/.json and comparison.png.",
         )
     )
+
+    from .photos import add_photos_arguments
+
+    add_photos_arguments(
+        sub.add_parser(
+            "photos",
+            help="calibrated photographs -> closed, coloured mesh",
+            description="Carve a voxel shell from calibrated photographs, fit the surface to it and colour it from the photographs.",
+        )
+    )
+
+    view = sub.add_parser(
+        "view",
+        help="interactive viewer (PyVista): points, constraints, surface, sliders",
+        description="Show the input points, the constraints, the cameras and the iso-surface beside Open3D Poisson; "
+        "sliders refit.  --screenshot renders offscreen without a display.",
+    )
+    _add_view_arguments(view)
     return parser
+
+
+def _add_view_arguments(parser: argparse.ArgumentParser) -> None:
+    """The viewer's arguments, without importing PyVista (``o3drbf --help`` stays fast)."""
+    try:
+        from viewers.app import add_view_arguments
+    except ImportError:  # viewers/ not installed: keep the CLI usable
+        parser.add_argument("input", nargs="?")
+        return
+    add_view_arguments(parser)
 
 
 def _version() -> str:
@@ -116,6 +146,16 @@ def main(argv: list[str] | None = None) -> int:
             from .compare import main_compare
 
             return main_compare(args)
+        if args.command == "photos":
+            from .photos import main_photos
+
+            return main_photos(args)
+        if args.command == "view":
+            try:
+                from viewers.app import main_view
+            except ImportError as exc:
+                raise ImportError(f"o3drbf view needs the viewers package and PyVista ({exc}); pip install 'o3drbf[view]'") from None
+            return main_view(args)
     except (ValueError, FileNotFoundError, MemoryError, RuntimeError, OSError, ImportError) as exc:
         print(f"o3drbf: error: {_one_line(exc)}", file=sys.stderr)
         return 2
