@@ -1,14 +1,843 @@
-"""``o3drbf view``: placeholder, filled in by issue 6."""
+"""``o3drbf view``: the input points, the constraints, the cameras and the iso-surface, with sliders.
+
+Three columns.  Controls: sliders for lambda (surface, log10), delta, tau,
+the iso-level and the grid resolution, and check boxes for the layers (in
+the layers' colours, so also the legend).  o3drbf: input points (grey),
+surface constraints (blue squares) and exterior constraints (green
+squares), as in the paper's Fig. 8; the cameras as frusta (orange); the
+iso-surface f = level.  Open3D Poisson (unless ``--no-poisson``): screened
+Poisson on the same points, its camera linked to the o3drbf panel's.
+
+lambda/delta/tau refit, level/resolution only re-extract.  Jobs run on a
+worker thread (:mod:`viewers.refit`), polled by a window timer, so the window
+stays live and shows the progress.  The first fit chooses delta, tau and
+lambda from the data (``--auto``, as ``o3drbf reconstruct``); the sliders then
+show the values used.
+
+Keys: 1-6 toggle layers (points, surface constraints, exterior constraints,
+sphere constraints, cameras, iso-surface), m saves the mesh, k saves a
+screenshot, p picks the surface point under the mouse and shows f and
+|grad f| there, q quits.
+
+``--screenshot OUT.png`` renders the same scene offscreen (no display
+needed) and exits.
+
+PyVista is imported inside functions only: ``add_view_arguments`` runs when
+the ``o3drbf`` parser is built.
+"""
 
 from __future__ import annotations
 
 import argparse
+import os
+import shlex
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from .geometry import camera_frusta, view_direction, view_up, wind_like_normals
+from .inputs import ViewInput, load_view_input, model_constraints
+from .refit import FitParams, FitResult, Refitter, pick_values
+
+__all__ = ["add_view_arguments", "main_view", "ViewerApp", "COLORS", "LAYERS", "SLIDERS", "parse_script"]
+
+#: Layer colours (hex).  Surface constraints blue and exterior constraints
+#: green, as in the paper's Fig. 8.
+COLORS = {
+    "points": "#6b6b6b",
+    "surface": "#1f4fd8",
+    "exterior": "#12a03c",
+    "sphere": "#8fd19e",
+    "cameras": "#e07b00",
+    "mesh": "#e8dcc8",
+    "poisson": "#c8d2e6",
+    "pick": "#d62728",
+    "background": "#ffffff",
+    "controls": "#f2f2f2",
+}
+
+#: Toggleable layers: (key, name, label, shown at start).
+LAYERS = (
+    ("1", "points", "points", True),
+    ("2", "surface", "surface constraints", True),
+    ("3", "exterior", "exterior constraints", True),
+    ("4", "sphere", "sphere constraints", False),
+    ("5", "cameras", "cameras", True),
+    ("6", "mesh", "iso-surface", True),
+)
+
+#: Sliders: name -> (title, (low, high) in slider units, slider format).
+#: lambda_surface moves in log10 units.
+SLIDERS = {
+    "lambda_surface": ("lambda surface (log10)", (-6.0, 0.0), "%.1f"),
+    "delta": ("delta", (1.0, 60.0), "%.1f"),
+    "tau": ("tau", (0.001, 0.05), "%.3f"),
+    "level": ("iso-level", (-0.01, 0.01), "%.1e"),  # range follows f's scale after each fit
+    "resolution": ("grid resolution", (16.0, 256.0), "%.0f"),
+}
+_REFIT_SLIDERS = ("lambda_surface", "delta", "tau")
+
+_POLL_MS = 100
+
+
+# ----------------------------------------------------------------------------
+# command line
 
 
 def add_view_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    parser.add_argument("input", help="point cloud, scan JSON or saved model")
+    """The ``o3drbf view`` arguments (no PyVista import here)."""
+    from o3drbf.api import DEFAULTS
+
+    parser.add_argument(
+        "input",
+        help="point cloud (PLY, PCD, XYZ, ...), a file or folder with points and cameras "
+        "(o3drbf scan .json, Stanford .conf, COLMAP folder, bundle.out), or a saved model .npz",
+    )
+    parser.add_argument("--cameras", metavar="FILE", help="cameras for a plain point cloud (exterior constraints go toward them)")
+    parser.add_argument("--screenshot", metavar="PNG", help="render offscreen to this .png and exit (no display needed)")
+    parser.add_argument("--no-poisson", action="store_true", help="no Open3D Poisson panel")
+    parser.add_argument("--poisson-depth", type=int, default=8, help="Open3D Poisson octree depth, 1..12 (default %(default)s)")
+    g = parser.add_argument_group("starting values of the sliders")
+    g.add_argument(
+        "--auto",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="first fit: choose delta, tau and lambda-surface from the data (default); --no-auto: the paper's "
+        f"delta {DEFAULTS['delta']:g}, tau {DEFAULTS['tau']:g}, lambda-surface {DEFAULTS['lambda_surface']:g}",
+    )
+    g.add_argument("--lambda-surface", type=float, default=None, help="smoothing of surface constraints (default: --auto)")
+    g.add_argument("--delta", type=float, default=None, help="multi-order basis: first-order weight (default: --auto)")
+    g.add_argument("--tau", type=float, default=None, help="multi-order basis: third-order weight (default: --auto)")
+    g.add_argument("--level", type=float, default=0.0, help="iso-level of the shown surface (default %(default)s)")
+    g.add_argument("--resolution", type=int, default=64, help="marching-cubes cells along the longest side, 2..2048 (default %(default)s)")
+    g = parser.add_argument_group("fit")
+    g.add_argument("--surface-count", type=int, default=1500, help="about this many surface constraints (default %(default)s)")
+    g.add_argument("--outliers", default="none", choices=["none", "largest", "statistical"], help="outlier removal before fitting (default %(default)s)")
+    g.add_argument("--seed", type=int, default=0, help="seed for sampling (default %(default)s)")
+    g = parser.add_argument_group("window")
+    g.add_argument("--window-size", type=int, nargs=2, default=(1600, 800), metavar=("W", "H"), help="pixels (default %(default)s)")
+    g.add_argument("--save-prefix", default="o3drbf_view", help="keys m / k write PREFIX_mesh.ply / PREFIX.png (default %(default)s)")
+    g.add_argument("--show-sphere", action="store_true", help="show the sphere constraints at start (key 4)")
+    g.add_argument("--hide", nargs="+", default=[], metavar="LAYER", choices=[name for _, name, _, _ in LAYERS], help="layers hidden at start: " + ", ".join(name for _, name, _, _ in LAYERS))
+    g.add_argument("--zoom", type=float, default=1.0, help="start view: 1 fits the data, 0.3 also shows cameras further out (default %(default)s)")
+    g.add_argument("--up", default="auto", choices=["auto", "x", "y", "z"], help="the data's up axis; auto: the cameras' up, else z (default %(default)s)")
+    # Scripted session for tests: "set level 0.1; wait; print; quit" (see parse_script).
+    g.add_argument("--script", default=None, help=argparse.SUPPRESS)
     return parser
 
 
+def _params_from_args(args) -> FitParams:
+    from o3drbf._validate import check_number
+
+    def opt(name, value, **kw):
+        return None if value is None else check_number(name, value, **kw)
+
+    return FitParams(
+        lambda_surface=opt("lambda_surface", args.lambda_surface, low=0.0),
+        delta=opt("delta", args.delta, low=0.0, low_open=True),
+        tau=opt("tau", args.tau, low=0.0, low_open=True),
+        auto=bool(args.auto),
+        level=check_number("level", args.level),
+        resolution=check_number("resolution", args.resolution, low=2, high=2048, integer=True),
+        surface_count=check_number("surface_count", args.surface_count, low=10, integer=True),
+        outliers=args.outliers,
+        seed=args.seed,
+    )
+
+
+def _check_png(path: str, inputs) -> Path:
+    from o3drbf.io import check_output
+
+    return check_output(path, inputs=inputs, formats=(".png",))
+
+
 def main_view(args: argparse.Namespace) -> int:
-    raise RuntimeError("o3drbf view is not implemented yet")
+    """Run ``o3drbf view`` (interactive, or offscreen with ``--screenshot``)."""
+    params = _params_from_args(args)
+    depth = int(args.poisson_depth)
+    if not 1 <= depth <= 12:
+        raise ValueError(f"--poisson-depth must be 1..12, got {depth}")
+    w, h = args.window_size
+    if not 0.01 <= args.zoom <= 100:
+        raise ValueError(f"--zoom must be in 0.01..100, got {args.zoom}")
+    if w < 200 or h < 150:
+        raise ValueError(f"--window-size must be at least 200 150, got {w} {h}")
+    script = parse_script(args.script) if args.script else None
+    shot = _check_png(args.screenshot, [args.input, args.cameras]) if args.screenshot else None
+    data = load_view_input(args.input, args.cameras)
+    options = dict(poisson=not args.no_poisson, poisson_depth=depth, window_size=(w, h), save_prefix=args.save_prefix, show_sphere=args.show_sphere, hide=tuple(args.hide), up=args.up, zoom=args.zoom)
+    if shot is not None:
+        app = ViewerApp.offscreen(data, params, **options)
+        try:
+            app.fit_now()
+            app.save_screenshot(shot)
+            print(f"o3drbf view: {app.describe()}; wrote {shot}")
+        finally:
+            app.close()
+        return 0
+    if sys.platform.startswith("linux") and not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
+        raise RuntimeError("no display for the interactive viewer; use --screenshot OUT.png (offscreen) or run it under xvfb-run")
+    app = ViewerApp.interactive(data, params, script=script, **options)
+    return app.run()
+
+
+# ----------------------------------------------------------------------------
+# scripted sessions (tests, demos)
+
+_SCRIPT_COMMANDS = {"set": 2, "wait": 0, "print": 0, "pick": 3, "key": 1, "quit": 0}
+
+
+def parse_script(text: str) -> list[tuple]:
+    """Steps of a scripted session: ``"set level 0.1; wait; print; pick 0 0 0; quit"``.
+
+    Commands: ``set SLIDER VALUE`` (moves a slider and runs its callback;
+    VALUE in the parameter's own units), ``wait`` (until every job is done),
+    ``print`` (one line describing the mesh, on stdout), ``pick X Y Z``,
+    ``key K`` (a layer/save key), ``quit``.
+    """
+    steps = []
+    for part in text.split(";"):
+        words = shlex.split(part)
+        if not words:
+            continue
+        cmd, rest = words[0], words[1:]
+        if cmd not in _SCRIPT_COMMANDS:
+            raise ValueError(f"unknown script command {cmd!r}; valid: {', '.join(_SCRIPT_COMMANDS)}")
+        if len(rest) != _SCRIPT_COMMANDS[cmd]:
+            raise ValueError(f"script command {cmd!r} takes {_SCRIPT_COMMANDS[cmd]} argument(s), got {rest}")
+        if cmd == "set":
+            if rest[0] not in SLIDERS:
+                raise ValueError(f"script: unknown slider {rest[0]!r}; valid: {', '.join(SLIDERS)}")
+            steps.append((cmd, rest[0], float(rest[1])))
+        elif cmd == "pick":
+            steps.append((cmd, tuple(float(v) for v in rest)))
+        else:
+            steps.append((cmd, *rest))
+    return steps
+
+
+# ----------------------------------------------------------------------------
+# the app
+
+
+def _headless() -> None:
+    from o3drbf.plotting import _headless as headless
+
+    headless()
+
+
+def _poly_from_mesh(mesh):
+    """An Open3D mesh as PyVista PolyData, wound like its vertex normals, which it keeps (smooth shading)."""
+    import pyvista as pv
+
+    v = np.asarray(mesh.vertices)
+    t = np.asarray(mesh.triangles)
+    if mesh.has_vertex_normals():
+        t = wind_like_normals(v, t, np.asarray(mesh.vertex_normals))
+    poly = pv.PolyData(v, np.column_stack([np.full(len(t), 3), t]).ravel())
+    if mesh.has_vertex_normals():
+        poly.point_data["Normals"] = np.asarray(mesh.vertex_normals)
+        poly.point_data.active_normals_name = "Normals"
+    return poly
+
+
+class ViewerApp:
+    """The viewer's scene and behaviour on a ``pyvista.Plotter``.
+
+    Every user action is a plain method (slider callbacks, layer toggles,
+    picking, saving), so tests and scripts call them directly.
+
+    Parameters
+    ----------
+    data : ViewInput
+    params : FitParams
+        Starting slider values and fit options.
+    plotter : pyvista.Plotter
+        Laid out by :meth:`_layout`: a control column, the o3drbf panel
+        and (when ``poisson``) the Poisson panel.
+    poisson : bool
+        Show Open3D Poisson in a second panel (off for a saved model: there
+        are no points).
+    poisson_depth : int
+    save_prefix : str
+        Keys m / k write ``PREFIX_mesh.ply`` / ``PREFIX.png``.
+    show_sphere : bool
+        Show the sphere constraints at start.
+    hide : sequence of str
+        Layers hidden at start (names in :data:`LAYERS`).
+    up : {"auto", "x", "y", "z"}
+        The data's up axis; "auto" takes the cameras' (else z).
+    zoom : float
+        Start view: 1 fits the data; below 1 shows more around it (the cameras).
+    script : list of steps, optional
+        From :func:`parse_script`, run by the window timer.
+    """
+
+    def __init__(self, data: ViewInput, params: FitParams, plotter, poisson: bool = True, poisson_depth: int = 8, save_prefix: str = "o3drbf_view", show_sphere: bool = False, hide=(), up: str = "auto", zoom: float = 1.0, script=None):
+        self.data = data
+        self.plotter = plotter
+        self.poisson_enabled = bool(poisson) and not data.is_model
+        self.poisson_depth = poisson_depth
+        self.save_prefix = save_prefix
+        self.script = list(script or [])
+        self.exit_code = 0
+        self.poisson_mesh = None
+        self._poisson_future = None
+        self._poisson_pool = None
+        self.result: FitResult | None = None
+        self.messages: list[str] = []
+        self.visible = {name: shown for _, name, _, shown in LAYERS}
+        self.visible["sphere"] = bool(show_sphere)
+        for name in hide:
+            if name not in self.visible:
+                raise ValueError(f"unknown layer {name!r}; valid: {', '.join(self.visible)}")
+            self.visible[name] = False
+        self.actors: dict[str, object] = {}
+        self.sliders: dict[str, object] = {}
+        if data.is_model:
+            params = replace(params, **data.model_params())
+        self.params = params
+        self.level_range: tuple[float, float] | None = None
+        constraints = model_constraints(data.model) if data.is_model else None
+        self.refitter = Refitter(data, params, surface=data.model, constraints=constraints)
+        lo, hi = data.bounds()
+        self.size = float(np.linalg.norm(hi - lo)) or 1.0
+        self.up = view_up(data.cameras, up)
+        self.zoom = float(zoom)
+        self._building = True  # PyVista calls each slider's callback once as it adds it: not a user action
+        self._build()
+        self._building = False
+
+    # -- construction -----------------------------------------------------------------
+
+    @staticmethod
+    def _layout(data, poisson: bool, window_size) -> dict:
+        """Plotter arguments: a control column, the o3drbf panel, and the Poisson panel."""
+        panels = 2 if poisson and not data.is_model else 1
+        control = min(300.0, 0.2 * window_size[0])
+        rest = (window_size[0] - control) / panels
+        return dict(shape=(1, 1 + panels), col_weights=[control] + [rest] * panels, window_size=list(window_size))
+
+    @classmethod
+    def offscreen(cls, data, params, window_size=(1600, 800), **kw) -> "ViewerApp":
+        """An app on an offscreen plotter (EGL without a display)."""
+        _headless()
+        import pyvista as pv
+
+        plotter = pv.Plotter(off_screen=True, border=False, **cls._layout(data, kw.get("poisson", True), window_size))
+        return cls(data, params, plotter, **kw)
+
+    @classmethod
+    def interactive(cls, data, params, window_size=(1600, 800), **kw) -> "ViewerApp":
+        """An app on an on-screen plotter (needs a display)."""
+        import pyvista as pv
+
+        plotter = pv.Plotter(border=True, title=f"o3drbf view: {Path(data.source).name}", **cls._layout(data, kw.get("poisson", True), window_size))
+        return cls(data, params, plotter, **kw)
+
+    #: Subplot columns: controls, o3drbf, Open3D Poisson.
+    CONTROLS, MAIN, POISSON = 0, 1, 2
+
+    @property
+    def control_width(self) -> int:
+        """Width of the control column in pixels."""
+        w = self.plotter.window_size[0]
+        return int(round(w * self.plotter.renderers[self.CONTROLS].GetViewport()[2]))
+
+    def _renderer(self, col: int):
+        return self.plotter.renderers[self.plotter.renderers.loc_to_index((0, col))]
+
+    def _build(self) -> None:
+        p = self.plotter
+        d = self.data
+        p.subplot(0, self.CONTROLS)
+        p.set_background(COLORS["controls"], all_renderers=False)
+        title = f"o3drbf view: {Path(d.source).name}" + ("\n(saved model: no refit)" if d.is_model else "")
+        self.title_actor = p.add_text(title, position=(0.04, 0.955), viewport=True, font_size=8, color="black", name="title")
+        p.subplot(0, self.MAIN)
+        p.set_background(COLORS["background"], all_renderers=False)
+        if d.points is not None:
+            self.actors["points"] = p.add_points(
+                np.asarray(d.points), color=COLORS["points"], point_size=2.0, render_points_as_spheres=False, lighting=False, name="points", reset_camera=False
+            )
+        self._add_cameras(self.MAIN)
+        p.add_text("o3drbf", position=(0.02, 0.955), viewport=True, font_size=9, color="black", name="main_title")
+        self.status_actor = p.add_text("", position=(0.2, 0.955), viewport=True, font_size=8, color="#b00000", name="status")
+        self.pick_actor = p.add_text("", position=(0.02, 0.91), viewport=True, font_size=7, color=COLORS["pick"], name="pick")
+        self.info_actor = p.add_text("", position=(0.02, 0.015), viewport=True, font_size=6, color="black", name="info")
+        self._view_box()
+        if self.poisson_enabled:
+            p.subplot(0, self.POISSON)
+            p.set_background(COLORS["background"], all_renderers=False)
+            self._add_cameras(self.POISSON)
+            self.poisson_title = p.add_text(f"Open3D Poisson (depth {self.poisson_depth})", position=(0.02, 0.955), viewport=True, font_size=9, color="black", name="poisson_title")
+            self._view_box()
+            p.link_views(views=[self.plotter.renderers.loc_to_index((0, self.MAIN)), self.plotter.renderers.loc_to_index((0, self.POISSON))])
+        self._add_sliders()
+        self._add_buttons()
+        p.subplot(0, self.MAIN)
+        self._apply_visibility()
+
+    def _view_box(self) -> None:
+        """Look at the data from the side and above, the up axis up, the data filling most of the panel."""
+        lo, hi = self.data.bounds()
+        c = (lo + hi) / 2
+        radius = 0.5 * float(np.linalg.norm(hi - lo)) or 1.0
+        half_angle = np.radians(self.plotter.camera.view_angle / 2)
+        eye = c + radius / np.sin(half_angle) / (0.75 * self.zoom) * view_direction(self.up)
+        self.plotter.camera_position = [tuple(eye), tuple(c), tuple(self.up)]
+
+    def _frustum_depth(self) -> float:
+        return 0.2 * self.size
+
+    def _add_cameras(self, col: int) -> None:
+        import pyvista as pv
+
+        verts, lines, centers = camera_frusta(self.data.cameras, depth=self._frustum_depth())
+        names = []
+        if len(lines):
+            poly = pv.PolyData(verts, lines=np.column_stack([np.full(len(lines), 2), lines]).ravel())
+            self.plotter.add_mesh(poly, color=COLORS["cameras"], line_width=2, lighting=False, name=f"frusta{col}", reset_camera=False, pickable=False)
+            names.append(f"frusta{col}")
+        if len(centers):
+            self.plotter.add_points(centers, color=COLORS["cameras"], point_size=8, render_points_as_spheres=False, lighting=False, name=f"centers{col}", reset_camera=False, pickable=False)
+            names.append(f"centers{col}")
+        self.actors.setdefault("cameras_names", []).extend((col, n) for n in names)
+
+    def _add_sliders(self) -> None:
+        """The five sliders, stacked in the control column."""
+        p = self.plotter
+        p.subplot(0, self.CONTROLS)
+        ys = np.linspace(0.84, 0.40, len(SLIDERS))
+        values = self._slider_values(self.params)
+        for (name, (title, rng, fmt)), y in zip(SLIDERS.items(), ys):
+            fixed = self.data.is_model and name in _REFIT_SLIDERS
+            if name == "level":  # the range follows f's scale once fitted; keep the start value in it
+                rng = (min(rng[0], values[name]), max(rng[1], values[name]))
+            w = p.add_slider_widget(
+                (lambda value, n=name: self.on_slider(n, value)),
+                rng=list(rng),
+                value=float(np.clip(values[name], *rng)),
+                title=title + (" (fixed: model)" if fixed else ""),
+                pointa=(0.1, y),
+                pointb=(0.9, y),
+                color="#a8a8a8" if fixed else "#4a4a4a",
+                title_color="#8a8a8a" if fixed else "black",
+                interaction_event="end",
+                fmt=fmt,
+                title_height=0.018,
+                slider_width=0.015,
+                tube_width=0.004,
+            )
+            if fixed:
+                w.ProcessEventsOff()
+            self.sliders[name] = w
+
+    def _add_buttons(self) -> None:
+        """Check boxes (layers, in their colours: the legend) and two push buttons (save), in the control column."""
+        p = self.plotter
+        p.subplot(0, self.CONTROLS)
+        height = p.window_size[1]
+        size = max(12, int(0.024 * height))
+        step = size + max(4, int(0.01 * height))
+        y = int(0.31 * height)
+        rows = [(name, f"{key}  {label}", COLORS[name]) for key, name, label, _ in LAYERS if not (name == "points" and self.data.points is None)]
+        rows += [("save", "m  save mesh", None), ("shot", "k  screenshot", None)]
+        for name, label, color in rows:
+            if color is None:
+                callback = (lambda state, n=name: self._button_save(n))
+                value, color = False, "#777777"
+            else:
+                callback = (lambda state, n=name: self.set_layer(n, bool(state)))
+                value = self.visible[name]
+            self.actors[f"button_{name}"] = p.add_checkbox_button_widget(
+                callback, value=value, position=(10, y), size=size, border_size=2,
+                color_on=color, color_off="#ffffff", background_color="#a0a0a0",
+            )
+            p.add_text(label, position=(16 + size, y + 2), font_size=6, color="black", name=f"label_{name}")
+            y -= step
+
+    def _button_save(self, what: str) -> None:
+        self.actors[f"button_{what}"].GetRepresentation().SetState(0)  # a push button, not a toggle
+        if what == "save":
+            self.save_mesh()
+        else:
+            self.save_screenshot()
+
+    @staticmethod
+    def _slider_values(params: FitParams) -> dict[str, float]:
+        """Slider positions for ``params`` (values still to be chosen by the fit show the paper's)."""
+        from o3drbf.api import DEFAULTS
+
+        lam = DEFAULTS["lambda_surface"] if params.lambda_surface is None else params.lambda_surface
+        return {
+            "lambda_surface": float(np.log10(lam)) if lam > 0 else SLIDERS["lambda_surface"][1][0],
+            "delta": DEFAULTS["delta"] if params.delta is None else params.delta,
+            "tau": DEFAULTS["tau"] if params.tau is None else params.tau,
+            "level": params.level,
+            "resolution": float(params.resolution),
+        }
+
+    # -- user actions (plain methods) -------------------------------------------------
+
+    def on_slider(self, name: str, value: float) -> FitParams | None:
+        """A slider moved to ``value`` (slider units): request the refit or re-extraction.
+
+        Returns the parameters requested, or None when nothing changed (or
+        the slider is fixed for a saved model).
+        """
+        if name not in SLIDERS:
+            raise ValueError(f"unknown slider {name!r}; valid: {', '.join(SLIDERS)}")
+        if self._building:
+            return None
+        value = float(value)
+        if name == "lambda_surface":
+            new = {"lambda_surface": float(10.0**value)}
+        elif name == "resolution":
+            new = {"resolution": int(round(value))}
+        else:
+            new = {name: value}
+        target = self.refitter.target
+        if all(getattr(target, k) is not None and np.isclose(getattr(target, k), v, rtol=1e-9, atol=0.0) for k, v in new.items()):
+            return None  # also the call PyVista makes when it adds the slider
+        if self.data.is_model and name in _REFIT_SLIDERS:
+            self._say("a saved model cannot be refitted: lambda, delta and tau are fixed")
+            return None
+        params = self.refitter.request(**new)
+        self._update_status()
+        return params
+
+    def set_slider(self, name: str, value: float) -> FitParams | None:
+        """Move a slider to ``value`` given in the parameter's own units, as a user would."""
+        if name not in SLIDERS:
+            raise ValueError(f"unknown slider {name!r}; valid: {', '.join(SLIDERS)}")
+        pos = float(np.log10(value)) if name == "lambda_surface" else float(value)
+        lo, hi = self.level_range if name == "level" and self.level_range else SLIDERS[name][1]
+        if not lo <= pos <= hi:
+            raise ValueError(f"{name} slider goes from {lo:g} to {hi:g} ({'log10 ' if name == 'lambda_surface' else ''}units), got {pos:g}")
+        widget = self.sliders[name]
+        widget.GetRepresentation().SetValue(pos)
+        if not widget.GetProcessEvents():
+            self._say(f"{name} is fixed for a saved model")
+            return None
+        return self.on_slider(name, pos)
+
+    def set_layer(self, name: str, shown: bool) -> None:
+        """Show or hide one layer (see :data:`LAYERS`)."""
+        if name not in self.visible:
+            raise ValueError(f"unknown layer {name!r}; valid: {', '.join(self.visible)}")
+        self.visible[name] = bool(shown)
+        button = self.actors.get(f"button_{name}")
+        if button is not None:
+            button.GetRepresentation().SetState(int(bool(shown)))
+        self._apply_visibility()
+        self._render()
+
+    def toggle_layer(self, name: str) -> bool:
+        """Flip one layer; returns whether it is now shown."""
+        self.set_layer(name, not self.visible.get(name, False))
+        return self.visible[name]
+
+    def on_key(self, key: str) -> None:
+        """What a key press does (1-6 layers, m save mesh, k screenshot)."""
+        for k, name, _, _ in LAYERS:
+            if key == k:
+                self.toggle_layer(name)
+                return
+        if key == "m":
+            self.save_mesh()
+        elif key == "k":
+            self.save_screenshot()
+        else:
+            raise ValueError(f"no action on key {key!r}; keys: 1-6, m, k, p, q")
+
+    def on_pick(self, point) -> tuple[float, float]:
+        """Show (and return) f and |grad f| at a picked point (data coordinates)."""
+        surface = self.refitter.surface
+        if surface is None:
+            self._set_text(self.pick_actor, "pick: no surface yet")
+            return float("nan"), float("nan")
+        f, g = pick_values(surface, point)
+        p = np.asarray(point, dtype=float).reshape(3)
+        self._set_text(self.pick_actor, f"picked ({p[0]:.4g}, {p[1]:.4g}, {p[2]:.4g}):  f = {f:.4g},  norm(grad f) = {g:.4g}")
+        self.plotter.subplot(0, self.MAIN)
+        self.plotter.add_points(p[None, :], color=COLORS["pick"], point_size=12, render_points_as_spheres=True, name="picked", reset_camera=False, pickable=False)
+        self._render()
+        return f, g
+
+    def save_mesh(self, path: str | os.PathLike | None = None) -> Path | None:
+        """Write the current iso-surface (default ``PREFIX_mesh.ply``); never over an input."""
+        from o3drbf.io import check_output, write_mesh
+
+        if self.result is None or self.result.mesh is None:
+            self._say("no mesh to save yet")
+            return None
+        inputs = [self.data.source]
+        out = check_output(path or f"{self.save_prefix}_mesh.ply", inputs=inputs)
+        write_mesh(out, self.result.mesh, inputs=inputs)
+        self._say(f"wrote {out}")
+        return out
+
+    def save_screenshot(self, path: str | os.PathLike | None = None) -> Path:
+        """Write the window as a PNG (default ``PREFIX.png``), atomically."""
+        from o3drbf.io import atomic_path
+
+        out = _check_png(str(path or f"{self.save_prefix}.png"), [self.data.source])
+        self._render()
+        with atomic_path(out) as tmp:
+            self.plotter.screenshot(tmp)
+        self._say(f"wrote {out}")
+        return out
+
+    # -- jobs ---------------------------------------------------------------------------
+
+    def fit_now(self) -> FitResult | None:
+        """Fit (or extract, for a model) and compute Poisson synchronously; show the results."""
+        if self.result is None and not self.refitter.busy:
+            self.refitter.start()
+        res = self.refitter.wait()
+        if res is not None:
+            self.show_result(res)
+        if self.poisson_enabled and self.poisson_mesh is None:
+            self.show_poisson(self._compute_poisson())
+        return res
+
+    def start_jobs(self) -> None:
+        """Start the first fit and Poisson on worker threads (interactive start)."""
+        self.refitter.start()
+        if self.poisson_enabled:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self._poisson_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="o3drbf-poisson")
+            self._poisson_future = self._poisson_pool.submit(self._compute_poisson)
+        self._update_status()
+
+    def _compute_poisson(self):
+        from o3drbf.peers import poisson
+
+        normals = self.data.normals
+        if normals is None:
+            from o3drbf.compare import open3d_normals
+
+            normals = open3d_normals(self.data.points, self.data.cameras, self.data.point_camera)
+        return poisson(self.data.points, normals, depth=self.poisson_depth)
+
+    def poll(self) -> FitResult | None:
+        """Take finished jobs' results into the scene (called by the window timer)."""
+        res = self.refitter.poll()
+        if res is not None:
+            self.show_result(res)
+        fut = self._poisson_future
+        if fut is not None and fut.done():
+            self._poisson_future = None
+            try:
+                self.show_poisson(fut.result())
+            except Exception as exc:  # noqa: BLE001 - shown in the panel
+                self._set_text(self.poisson_title, f"Open3D Poisson failed: {' '.join(str(exc).split())}")
+        self._update_status()
+        return res
+
+    def show_result(self, res: FitResult) -> None:
+        """Put a finished job's mesh and constraints into the left panel."""
+        p = self.plotter
+        p.subplot(0, self.MAIN)
+        if res.mesh is not None or res.refit or self.result is None:
+            self.result = res
+        else:  # failed extraction: keep the function, show no mesh
+            self.result = FitResult(res.params, res.surface, None, res.constraints, res.refit, res.seconds, res.error)
+        self.params = res.params
+        if res.mesh is not None and len(res.mesh.triangles):
+            self.actors["mesh"] = p.add_mesh(_poly_from_mesh(res.mesh), color=COLORS["mesh"], smooth_shading=True, specular=0.3, name="mesh", reset_camera=False)
+        else:
+            p.remove_actor("mesh", render=False)
+            self.actors.pop("mesh", None)
+        for kind in ("surface", "exterior", "sphere"):
+            pts = None if res.constraints is None else res.constraints.get(kind)
+            if pts is not None and len(pts):
+                self.actors[kind] = p.add_points(np.asarray(pts), color=COLORS[kind], point_size=5.0, render_points_as_spheres=False, lighting=False, name=kind, reset_camera=False, pickable=False)
+        if res.refit or self.level_range is None:
+            self._fit_level_range(res)
+            self._sync_sliders(res.params)
+        if res.error:
+            self._say(res.error)
+        self._apply_visibility()
+        self._set_text(self.info_actor, self.describe(multiline=True))
+        self._render()
+
+    def _sync_sliders(self, params: FitParams) -> None:
+        """Show the values a fit used (e.g. chosen automatically) on the refit sliders."""
+        values = self._slider_values(params)
+        for name in _REFIT_SLIDERS:
+            rep = self.sliders[name].GetRepresentation()
+            v = values[name]
+            if v < rep.GetMinimumValue():
+                rep.SetMinimumValue(v)
+            if v > rep.GetMaximumValue():
+                rep.SetMaximumValue(v)
+            rep.SetValue(v)
+
+    def _fit_level_range(self, res: FitResult) -> None:
+        """Let the iso-level slider span twice f's typical value at the exterior constraints.
+
+        f is 0 on the data and pulled toward -1 outside, but the smoothing of
+        the exterior constraints shrinks its scale, often by orders of
+        magnitude: a fixed range would be useless.
+        """
+        c = res.constraints or {}
+        pts = c.get("exterior")
+        if pts is None or not len(pts):
+            pts = c.get("sphere")
+        if pts is None or not len(pts) or res.surface is None:
+            return
+        scale = float(np.median(np.abs(res.surface.evaluate(np.asarray(pts)[:200]))))
+        if not np.isfinite(scale) or scale <= 0:
+            return
+        level = res.params.level
+        lo, hi = min(-2 * scale, level), max(2 * scale, level)
+        self.level_range = (lo, hi)
+        rep = self.sliders["level"].GetRepresentation()
+        rep.SetMinimumValue(lo)
+        rep.SetMaximumValue(hi)
+        rep.SetValue(level)
+
+    def show_poisson(self, mesh) -> None:
+        self.poisson_mesh = mesh
+        p = self.plotter
+        p.subplot(0, self.POISSON)
+        p.add_mesh(_poly_from_mesh(mesh), color=COLORS["poisson"], smooth_shading=True, specular=0.3, name="poisson", reset_camera=False)
+        self._set_text(self.poisson_title, f"Open3D Poisson (depth {self.poisson_depth}): {len(mesh.triangles):,} triangles")
+        p.subplot(0, self.MAIN)
+        self._render()
+
+    def describe(self, multiline: bool = False) -> str:
+        """The mesh and the parameters it was made with: one line (printed by scripts) or several (the panel)."""
+        r = self.result
+        if r is None:
+            return "no mesh yet"
+        q = r.params
+        counts = {k: len(v) for k, v in (r.constraints or {}).items()}
+        def num(v, fmt="g"):
+            return "-" if v is None else format(v, fmt)
+
+        parts = [
+            f"mesh {len(r.mesh.triangles)} triangles, {len(r.mesh.vertices)} vertices" if r.mesh is not None else f"no mesh ({r.error})",
+            f"level {q.level:g}, resolution {q.resolution}",
+            f"lambda_surface {num(q.lambda_surface, '.3g')}, delta {num(q.delta)}, tau {num(q.tau)}",
+            f"{counts.get('surface', 0)} surface, {counts.get('exterior', 0)} exterior constraints",
+            f"{'refit' if r.refit else 'extract'} {r.seconds:.2f} s",
+        ]
+        if multiline:
+            parts[0] = parts[0][:90]
+            parts[2] = parts[2].replace(", delta", "\ndelta")
+        return ("\n" if multiline else "; ").join(parts)
+
+    # -- window --------------------------------------------------------------------------
+
+    def _apply_visibility(self) -> None:
+        for name in ("points", "surface", "exterior", "sphere", "mesh"):
+            actor = self._renderer(self.MAIN).actors.get(name)
+            if actor is not None:
+                actor.SetVisibility(bool(self.visible[name]))
+        for col, name in self.actors.get("cameras_names", []):
+            actor = self._renderer(col).actors.get(name)
+            if actor is not None:
+                actor.SetVisibility(bool(self.visible["cameras"]))
+
+    def _set_text(self, actor, text: str) -> None:
+        actor.SetInput(text)
+
+    def _say(self, message: str) -> None:
+        self.messages.append(message)
+        self._set_text(self.status_actor, message)
+
+    def _update_status(self) -> None:
+        s = self.refitter.status()
+        if self._poisson_future is not None:
+            s = (s + "; " if s else "") + "Open3D Poisson ..."
+        if s:
+            self._set_text(self.status_actor, s)
+        elif self.status_actor.GetInput() and self.status_actor.GetInput().endswith(" s"):
+            self._set_text(self.status_actor, "")
+
+    def _render(self) -> None:
+        if getattr(self.plotter, "render_window", None) is not None:
+            self.plotter.render()
+
+    def _on_timer(self, *_):
+        """Every 100 ms: take finished jobs in, show the progress, run the script; redraw only if needed."""
+        try:
+            busy = self.refitter.busy or self._poisson_future is not None
+            changed = self.poll() is not None
+            scripted = bool(self.script)
+            self._run_script()
+        except Exception as exc:  # noqa: BLE001 - never let a callback kill the event loop silently
+            print(f"o3drbf view: error: {' '.join(str(exc).split())}", file=sys.stderr)
+            self.exit_code = 1
+            self.quit()
+            return
+        if busy or changed or scripted:
+            self._render()
+
+    def _run_script(self) -> None:
+        while self.script:
+            step = self.script[0]
+            cmd = step[0]
+            if cmd == "wait":
+                if self.refitter.busy or self._poisson_future is not None or self.result is None:
+                    return
+            elif cmd == "set":
+                self.set_slider(step[1], step[2])
+            elif cmd == "print":
+                print(f"o3drbf view: {self.describe()}", flush=True)
+            elif cmd == "pick":
+                f, g = self.on_pick(step[1])
+                print(f"o3drbf view: pick {step[1]} f {f:.10g} |grad f| {g:.10g}", flush=True)
+            elif cmd == "key":
+                self.on_key(step[1])
+            elif cmd == "quit":
+                self.script = []
+                self.quit()
+                return
+            self.script.pop(0)
+
+    def quit(self) -> None:
+        iren = self.plotter.iren
+        if iren is not None:
+            iren.terminate_app()
+
+    def run(self) -> int:
+        """Open the window, start the jobs and run the event loop until closed."""
+        p = self.plotter
+        for key, name, _, _ in LAYERS:
+            p.add_key_event(key, lambda n=name: self.toggle_layer(n))
+        p.add_key_event("m", lambda: self._guard(self.save_mesh))
+        p.add_key_event("k", lambda: self._guard(self.save_screenshot))
+        p.enable_surface_point_picking(callback=lambda point: self._guard(self.on_pick, point), show_message=False, show_point=False, left_clicking=False)
+        self.start_jobs()
+        p.iren.add_observer("TimerEvent", self._on_timer)
+        p.show(interactive_update=True, auto_close=False)
+        p.iren.create_timer(_POLL_MS, repeating=True)
+        try:
+            p.iren.start()
+        finally:
+            self.close()
+        if self.script:
+            print(f"o3drbf view: error: the window closed before the script finished ({len(self.script)} step(s) left)", file=sys.stderr)
+            return 1
+        return self.exit_code
+
+    def _guard(self, fn, *args):
+        try:
+            return fn(*args)
+        except (ValueError, OSError) as exc:
+            self._say(" ".join(str(exc).split()))
+            return None
+
+    def close(self) -> None:
+        """Stop the workers and close the window."""
+        self.refitter.close()
+        if self._poisson_pool is not None:
+            self._poisson_pool.shutdown(wait=True, cancel_futures=True)
+        self.plotter.close()
