@@ -1,6 +1,6 @@
 """`make bench`: every benchmark table, one after another, in one run.
 
-    python benchmarks/run.py [--only core,vision,scale] [--threads 2]
+    python benchmarks/run.py [--only core,vision,scale,photos] [--threads 2]
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ SUITES = {
     "core": ["core.py"],
     "vision": ["vision.py"],
     "scale": ["scale.py"],
+    "photos": ["photos.py"],
 }
 
 
