@@ -2,6 +2,7 @@
 PY      := .venv/bin/python
 SETUP   := .venv/.installed
 OUT     ?= out
+TEMPLE  ?= ../shared/data/middlebury_templeSparseRing
 export OMP_NUM_THREADS ?= 2
 
 .PHONY: setup demo test bench bench-paper figures clean
@@ -26,6 +27,11 @@ bench-paper: $(SETUP)
 figures: $(SETUP)
 	$(PY) samples/demo.py --out $(OUT)/figures
 	mkdir -p docs/images && cp $(OUT)/figures/demo.png docs/images/demo.png
+	$(PY) -m viewers.sample_scan $(OUT)/figures/tori_scan.json
+	$(PY) -m o3drbf.cli view $(OUT)/figures/tori_scan.json --screenshot docs/images/viewer.png --zoom 0.5
+	@if [ -d $(TEMPLE) ]; then \
+	  .venv/bin/o3drbf photos $(TEMPLE) --calibration $(TEMPLE)/templeSR_par.txt -o $(OUT)/figures/temple.ply --picture docs/images/fig9_temple.png; \
+	else echo "figures: skipping Fig. 9 (needs $(TEMPLE))"; fi
 
 clean:
 	rm -rf $(OUT) .pytest_cache
