@@ -117,10 +117,11 @@ def reconstruct(
     outlier_radius: float | None = None,
     keep_components: int = 1,
     basis: str = DEFAULTS["basis"],
-    delta: float = DEFAULTS["delta"],
-    tau: float = DEFAULTS["tau"],
+    delta: float | None = None,
+    tau: float | None = None,
     sigma: float = DEFAULTS["sigma"],
-    lambda_surface=DEFAULTS["lambda_surface"],
+    lambda_surface=None,
+    auto: bool = False,
     lambda_exterior: float = DEFAULTS["lambda_exterior"],
     surface_count: int | None = DEFAULTS["surface_count"],
     surface_radius: float | None = None,
@@ -161,14 +162,22 @@ def reconstruct(
     keep_components : int
         How many components ``outliers="largest"`` keeps.
     basis : {"multiorder", "thinplate", "gaussian"}
-    delta, tau : float
+    delta, tau : float, optional
         Multi-order basis parameters (normalized box): delta in (0, 1e4],
-        tau in (0, 10].  The paper: delta 5..40, tau 0.005..0.025.
+        tau in (0, 10].  The paper: delta 5..40, tau 0.005..0.025.  None:
+        chosen from the data when ``auto``, else the paper's 10 and 0.01.
     sigma : float
         Gaussian width (box units), for ``basis="gaussian"``.
-    lambda_surface : float or (N,) array_like
+    lambda_surface : float or (N,) array_like, optional
         Smoothing of surface constraints, >= 0 (0 interpolates); per input
-        point if an array.
+        point if an array.  None: chosen from the data when ``auto``
+        (multi-order basis), else the paper's 1e-3.
+    auto : bool
+        Choose the parameters left at None from the surface constraints'
+        spacing and the points' noise (:mod:`o3drbf.auto`).  Values given
+        explicitly always win.  ``stats["parameters"]`` records the values
+        used, ``stats["parameter_source"]`` where each came from ("given",
+        "auto" or "paper") and ``stats["auto"]`` the rule's inputs and reason.
     lambda_exterior : float
         Smoothing of exterior constraints, >= 0.
     surface_count : int or None
@@ -221,8 +230,15 @@ def reconstruct(
     n = len(pts)
     if normals is None:
         normals = cloud_normals
-    kernel = make_kernel(basis, **_kernel_params(basis, delta, tau, sigma))
-    lam_s = per_point("lambda_surface", lambda_surface, n)
+    auto = bool(auto)
+    use_auto = auto and str(basis).lower() == "multiorder"
+    source = {
+        name: "given" if value is not None else ("auto" if use_auto else "paper")
+        for name, value in (("delta", delta), ("tau", tau), ("lambda_surface", lambda_surface))
+    }
+    # Validate the given values now (before any costly step); fill the rest later.
+    make_kernel(basis, **_kernel_params(basis, DEFAULTS["delta"] if delta is None else delta, DEFAULTS["tau"] if tau is None else tau, sigma))
+    lam_s = per_point("lambda_surface", DEFAULTS["lambda_surface"] if lambda_surface is None else lambda_surface, n)
     lam_e = check_number("lambda_exterior", lambda_exterior, low=0.0)
     exterior_ratio = check_number("exterior_ratio", exterior_ratio, low=0.0, high=1.0)
     exterior_offset = check_number("exterior_offset", exterior_offset, low=0.0, high=0.5, low_open=True)
@@ -291,13 +307,27 @@ def reconstruct(
         n_ext = int(round(exterior_ratio * len(idx)))
         ext = exterior_from_normals(surf_pts, nrm[idx], exterior_offset, n_ext, seed=seed, reference=box)
     sph = bounding_sphere(box, sphere_count)
+    spacing = mean_spacing(surf_pts) if len(surf_pts) > 1 else float("nan")
+    chosen = None
+    if use_auto and "auto" in source.values():
+        from .auto import estimate_noise, parameters_from
+
+        chosen = parameters_from(spacing, estimate_noise(box, seed=seed), norm.scale)
+        log.info("automatic parameters: %s", chosen.reason)
+        delta = chosen.delta if delta is None else delta
+        tau = chosen.tau if tau is None else tau
+    delta = DEFAULTS["delta"] if delta is None else delta
+    tau = DEFAULTS["tau"] if tau is None else tau
+    kernel = make_kernel(basis, **_kernel_params(basis, delta, tau, sigma))
+    if source["lambda_surface"] == "auto":
+        # The rule's lambda is relative to phi(0) of the kernel actually used.
+        lam_s = np.full(n, chosen.lambda_relative * kernel.value_at_zero)
     constraints = Constraints.concat(
         Constraints.of_kind(surf_pts, SURFACE, lam_s[idx]),
         Constraints.of_kind(ext, EXTERIOR, lam_e),
         Constraints.of_kind(sph, SPHERE, lam_e),
     )
     t_constraints = time.perf_counter() - t0
-    spacing = mean_spacing(surf_pts) if len(surf_pts) > 1 else float("nan")
     log.info(
         "%d points -> %d surface, %d exterior, %d sphere constraints; mean spacing %.4f (box units)",
         n, len(surf_pts), len(ext), len(sph), spacing,
@@ -316,6 +346,7 @@ def reconstruct(
         "seed": seed,
         "bounds": [(lo - pad).tolist(), (hi + pad).tolist()],
         "normals_estimated": normals_estimated,
+        "parameter_source": source,
     }
     log.info("solved %d constraints (%s) in %.2f s, relative residual %.1e", len(constraints), sol.method, sol.seconds, sol.residual)
 
@@ -345,6 +376,9 @@ def reconstruct(
         "mean_spacing_box": spacing,
         "mean_spacing": spacing / norm.scale,
         "basis": repr(kernel),
+        "parameters": {**kernel.params, "lambda_surface": float(np.median(lam_s)), "lambda_exterior": lam_e},
+        "parameter_source": source,
+        "auto": None if chosen is None else chosen.as_dict(),
         "solver": sol.method,
         "iterations": sol.iterations,
         "residual": sol.residual,

@@ -57,8 +57,16 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("-o", "--output", required=True, help="output mesh (.ply, .obj, .stl, .off, .gltf, .glb)")
     g = rec.add_argument_group("basis")
     g.add_argument("--basis", default=DEFAULTS["basis"], choices=["multiorder", "thinplate", "gaussian"])
-    g.add_argument("--delta", type=float, default=DEFAULTS["delta"], help="multi-order: first-order weight, enters squared (default %(default)s)")
-    g.add_argument("--tau", type=float, default=DEFAULTS["tau"], help="multi-order: third-order weight (default %(default)s)")
+    g.add_argument(
+        "--auto",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="choose delta, tau and lambda-surface from the data's spacing and noise (default); "
+        f"--no-auto: the paper's fixed values delta {DEFAULTS['delta']:g}, tau {DEFAULTS['tau']:g}, lambda-surface {DEFAULTS['lambda_surface']:g}. "
+        "An explicit --delta, --tau or --lambda-surface overrides only that one",
+    )
+    g.add_argument("--delta", type=float, default=None, help=f"multi-order: first-order weight, enters squared (default: --auto, or {DEFAULTS['delta']:g})")
+    g.add_argument("--tau", type=float, default=None, help=f"multi-order: third-order weight (default: --auto, or {DEFAULTS['tau']:g})")
     g.add_argument("--sigma", type=float, default=DEFAULTS["sigma"], help="gaussian: width (default %(default)s)")
     g = rec.add_argument_group("cameras and outliers")
     g.add_argument("--cameras", metavar="FILE", help="cameras that saw the points (JSON, Middlebury *_par.txt, COLMAP folder, bundle.out, .conf): exterior constraints go toward them")
@@ -66,7 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--outlier-radius", type=float, default=None, help="neighbourhood radius for --outliers largest, data units (default: 3 mean spacings)")
     g.add_argument("--keep-components", type=_positive_int, default=1, help="components kept by --outliers largest (default %(default)s)")
     g = rec.add_argument_group("constraints")
-    g.add_argument("--lambda-surface", type=float, default=DEFAULTS["lambda_surface"], help="smoothing of surface constraints, >= 0 (default %(default)s)")
+    g.add_argument("--lambda-surface", type=float, default=None, help=f"smoothing of surface constraints, >= 0 (default: --auto, or {DEFAULTS['lambda_surface']:g})")
     g.add_argument("--lambda-exterior", type=float, default=DEFAULTS["lambda_exterior"], help="smoothing of exterior constraints (default %(default)s)")
     g.add_argument("--surface-count", type=_positive_int, default=DEFAULTS["surface_count"], help="Poisson-disc subsample to about N surface constraints (default %(default)s)")
     g.add_argument("--surface-radius", type=float, default=None, help="Poisson-disc radius (box units) instead of --surface-count")
@@ -205,6 +213,7 @@ def _reconstruct(args) -> int:
         tau=args.tau,
         sigma=args.sigma,
         lambda_surface=args.lambda_surface,
+        auto=args.auto,
         lambda_exterior=args.lambda_exterior,
         surface_count=None if args.all_points else args.surface_count,
         surface_radius=args.surface_radius,
@@ -249,6 +258,16 @@ def _read_input(path: str):
     return points, normals, None, None
 
 
+def _parameters_line(stats) -> str:
+    """The parameters used, where each came from, and the automatic rule's reason."""
+    params, source = stats.get("parameters", {}), stats.get("parameter_source", {})
+    parts = [f"{name} {params[name]:.4g} ({source.get(name, 'given')})" for name in ("delta", "tau", "lambda_surface") if name in params]
+    line = ", ".join(parts)
+    if stats.get("auto"):
+        line += f"\n  auto because     {stats['auto']['reason']}"
+    return line
+
+
 def summary(result, points, input_path, output_path, model_path=None, seconds=None) -> str:
     """The closing summary: what went in, what came out, and how well it fits."""
     from .metrics import fitness_error, mesh_report
@@ -264,6 +283,7 @@ def summary(result, points, input_path, output_path, model_path=None, seconds=No
         f"  constraints      {s['surface_constraints']:,} surface, {s['exterior_constraints']:,} exterior, {s['sphere_constraints']:,} sphere",
         f"  mean spacing     {s['mean_spacing']:.4g} (data units), {s['mean_spacing_box']:.4f} in the 2x2x2 box",
         f"  basis            {s['basis']}",
+        f"  parameters       {_parameters_line(s)}",
         f"  solve            {s['solver']}, {s['solve_seconds']:.2f} s, relative residual {s['residual']:.1e}"
         + (f", {s['iterations']} iterations" if s["iterations"] else ""),
         f"  mesh             {s['triangles']:,} triangles, {s['vertices']:,} vertices, extracted in {s['extract_seconds']:.2f} s",

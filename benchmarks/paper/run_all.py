@@ -1,7 +1,8 @@
-"""Run every paper experiment (Figs. 2, 3/4, 7, 8 and the parameter study) and print their tables.
+"""Run every paper experiment (Figs. 2, 3/4, 7, 8, the parameter study and the robustness study) and print their tables.
 
 Each script runs as a subprocess with the same interpreter, writing into
-``OUT/<name>`` (default ``results/``); its output (the markdown tables) is
+``OUT/<name>`` (default ``results/``; the robustness study writes into
+``OUT`` itself); its output (the markdown tables) is
 printed as it comes.  Fig. 8 skips itself when the shared bunny data are
 absent.  Exit status: 0 when every script exits 0, else 1 (the others still
 run).
@@ -25,6 +26,8 @@ SCRIPTS = {
     "fig7": ("fig7_subset.py", "fig7"),
     "fig8": ("fig8_bunny.py", "fig8"),
     "parameters": ("parameter_study.py", "parameters"),
+    # Writes robustness.md/.csv/.json/.png straight into OUT (results/paper/robustness.md).
+    "robustness": ("robustness.py", "."),
 }
 
 
