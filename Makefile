@@ -29,6 +29,8 @@ figures: $(SETUP)
 	mkdir -p docs/images && cp $(OUT)/figures/demo.png docs/images/demo.png
 	$(PY) -m viewers.sample_scan $(OUT)/figures/tori_scan.json
 	$(PY) -m o3drbf.cli view $(OUT)/figures/tori_scan.json --screenshot docs/images/viewer.png --zoom 0.5
+	@if [ -f results/paper/robustness.png ]; then cp results/paper/robustness.png docs/images/robustness.png; \
+	else echo "figures: run make bench-paper for docs/images/robustness.png"; fi
 	@if [ -d $(TEMPLE) ]; then \
 	  .venv/bin/o3drbf photos $(TEMPLE) --calibration $(TEMPLE)/templeSR_par.txt -o $(OUT)/figures/temple.ply --picture docs/images/fig9_temple.png; \
 	else echo "figures: skipping Fig. 9 (needs $(TEMPLE))"; fi
