@@ -89,6 +89,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--save-model", metavar="FILE.npz", help="also save the implicit function (evaluate it later with o3drbf.ImplicitSurface.load)")
     g.add_argument("--seed", type=int, default=0, help="seed for sampling (default %(default)s)")
     g = rec.add_argument_group("output")
+    g.add_argument("--no-color", action="store_true", help="do not colour the mesh from the input points' colours (used when the input has colours)")
     g.add_argument("-q", "--quiet", action="store_true", help="no progress bars or summary")
     g.add_argument("-v", "--verbose", action="store_true", help="log each step")
 
@@ -226,11 +227,22 @@ def _reconstruct(args) -> int:
         seed=args.seed,
         progress=progress,
     )
+    colored = ""
+    if not args.no_color:
+        colors = _input_colors(args.input, cameras if not args.cameras else None)
+        if colors is not None and len(colors) == len(points):
+            from .color import color_mesh
+
+            result.mesh = color_mesh(result.mesh, points=points, colors=colors)
+            colored = "coloured from the input points' colours"
     io.write_mesh(out, result.mesh, inputs=[args.input])
     if args.save_model:
         result.surface.save(args.save_model)
     if not args.quiet:
-        print(summary(result, points, args.input, out, args.save_model, time.perf_counter() - t0))
+        text = summary(result, points, args.input, out, args.save_model, time.perf_counter() - t0)
+        if colored:
+            text = text.replace("\n  watertight", f"\n  colour           {colored}\n  watertight", 1)
+        print(text)
     return 0
 
 
@@ -256,6 +268,18 @@ def _read_input(path: str):
         return cams.points, None, cams, pc
     points, normals, _ = io.read_points(p)
     return points, normals, None, None
+
+
+def _input_colors(path: str, cameras) -> "np.ndarray | None":
+    """Per-point colours of INPUT (a coloured point cloud, or a scan JSON / COLMAP model with colours)."""
+    from . import io
+
+    if cameras is not None and getattr(cameras, "colors", None) is not None:
+        return cameras.colors
+    p = Path(path)
+    if p.is_dir() or p.suffix.lower() in _CAMERA_INPUTS:
+        return None
+    return io.read_points(p)[2]
 
 
 def _parameters_line(stats) -> str:
