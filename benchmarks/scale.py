@@ -1,15 +1,16 @@
-"""Scaling benchmark of the fast (FMM + two-level FGMRES) fit and evaluation.
+"""Scaling benchmark of the fast (grid or FMM products + two-level FGMRES) fit and extraction.
 
 For each N: N constraints on a torus (surface, f = 0, lambda 1e-3) plus 10%
 exterior ones (offset 0.05 along the normal, f = -1, lambda 2), in the
 normalized box.  Reports fit time and iterations, peak memory (ru_maxrss of a
-fresh process per N), evaluation time on a 256^3 narrow band (the grid nodes
-within 1.5 cells of the surface, ~3e5 targets) and on the 64^3 coarse grid
-that a coarse-to-fine extraction evaluates first, the dense solve where it
-fits (N <= --dense-max) and Open3D Poisson (depth 9) on the same surface
-points, as ratios.  Every size runs in its own subprocess so peaks are per N.
+fresh process per N), the extraction time of a 256^3 mesh (o3drbf.extract's
+coarse-to-fine narrow band + marching cubes, f from the fast evaluator), the
+dense solve where it fits (N <= --dense-max) and Open3D Poisson (depth 9) on
+the same surface points, as ratios, and the load average.  Every size runs in
+its own subprocess so peaks are per N.  ``--large`` adds 300k and 1M: each is
+refused up front (with its memory estimate) when it would not fit.
 
-    python benchmarks/scale.py --sizes 3000,10000,30000,100000 --threads 1
+    python benchmarks/scale.py --sizes 3000,10000,30000,100000 --threads 2
 
 Thread counts are fixed before NumPy loads (OMP / OpenBLAS / MKL) and printed.
 fmm3dpy's PyPI wheel is single-threaded whatever the setting.
@@ -64,6 +65,20 @@ def band_targets(grid: int, width: float = 1.5):
     return np.concatenate(out), h
 
 
+def _grid_spacing(kernel, c):
+    """(h, half) the grid backend would use for these centres (without building it)."""
+    import numpy as np
+    from scipy.spatial import cKDTree
+    from scipy.special import erfcinv
+
+    eps = args_eps = 1e-8  # the tight tier of the default rtol 1e-6 (eps = rtol / 10, / 10 inside)
+    sample = c[np.random.default_rng(0).choice(len(c), 2000, replace=False)]
+    rc = float(np.median(cKDTree(c).query(sample, k=1000)[0][:, -1]))
+    s = rc / (math.sqrt(2.0) * float(erfcinv(args_eps))) / math.sqrt(3.0)
+    ratio = max(0.7, math.sqrt(math.log(10.0 / eps) / (2 * math.pi**2)))
+    return s / ratio, int(math.ceil(math.sqrt(2 * math.log(10.0 / eps)) * ratio))
+
+
 def run_one(args) -> dict:
     """One size, in this (fresh) process."""
     import resource
@@ -99,35 +114,59 @@ def run_one(args) -> dict:
         o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pc, depth=9)
         res["poisson_s"] = time.perf_counter() - t
         return res
+    if n > args.max_run:
+        grid_need = fast._Mesh.nbytes(c.min(0), c.max(0), *_grid_spacing(kernel, c))
+        over = grid_need > fast.GRID_BUDGET
+        res["refused"] = (f"refused up front (above --max-run {args.max_run}): fast solve memory estimate "
+                          f"{need / 2**30:.1f} GB (limit {limit / 2**30:.1f} GB); grid backend FFT arrays "
+                          f"{grid_need / 2**30:.1f} GB " + ("> budget %.0f GB, so the fmm3dpy fallback "
+                          "(single-threaded, ~%.0f s a product, ~40 products) would run" % (fast.GRID_BUDGET / 2**30, n / 1e5 * 30)
+                          if over else "(within budget)"))
+        return res
+    cpu0 = time.process_time()
     t = time.perf_counter()
-    sol = fast.solve(kernel, c, y, lam, rtol=args.rtol, max_iterations=args.max_iterations)
+    sol = fast.solve(kernel, c, y, lam, rtol=args.rtol, max_iterations=args.max_iterations, backend=args.backend)
     res["fit_s"] = time.perf_counter() - t
+    res["fit_cpu_s"] = time.process_time() - cpu0
+    res["backend"] = sol.info["split"].get("split", sol.info["split"].get("mode", "?"))[:4]
     res["setup_s"] = sol.info["setup_seconds"]
     res["iterations"] = sol.iterations
     res["residual"] = sol.residual
     res["history"] = [round(math.log10(h), 1) for h in sol.info["history"]]
     res["solve_s"] = sol.info["solve_seconds"]
     res["coarse"] = sol.info["preconditioner"]["coarse"]
-    res["short_nnz"] = sol.info["split"].get("short_nnz", 0)
+    res["short_nnz"] = sol.info["split"].get("short_nnz", sol.info["split"].get("near_nnz", 0))
     res["fit_peak_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
-    ev = fast.make_evaluator(kernel, c, sol.weights, eps=args.eval_eps)
-    targets, h = band_targets(args.grid)
+    # Extraction: 256^3 coarse-to-fine band (o3drbf.extract) + marching cubes.
+    from skimage.measure import marching_cubes
+
+    from o3drbf.extract import evaluate_grid, grid_for
+
+    cpu0 = time.process_time()
     t = time.perf_counter()
-    vals = ev(targets, False) + sol.poly[0]
+    ev = fast.make_evaluator(kernel, c, sol.weights, eps=args.eval_eps, backend=args.backend)
+    calls = []
+
+    def func(pts):
+        calls.append(len(pts))
+        return ev(pts, False) + sol.poly[0]
+
+    origin, h, shape = grid_for(np.array([[-1.1] * 3, [1.1] * 3]), args.grid, multiple=8)
+    vals, exact = evaluate_grid(func, origin, h, shape)
+    verts, faces, _, _ = marching_cubes(vals, 0.0, spacing=(h, h, h))
+    _, grads = ev(verts + origin, True)  # exact vertex normals, as extract_mesh does
     res["band_s"] = time.perf_counter() - t
-    res["band_points"] = len(targets)
-    step = max(1, args.grid // 64)
-    coarse_n = (args.grid - 1) // step + 1
-    ax = np.linspace(-1.1, 1.1, args.grid)[::step]
-    g = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
-    t = time.perf_counter()
-    ev(g, False)
-    res["coarse_s"] = time.perf_counter() - t
-    res["coarse_points"] = coarse_n**3
-    # Check a sample of the band against the direct sum.
-    idx = np.random.default_rng(0).choice(len(targets), min(2000, len(targets)), replace=False)
-    ref = kernel_sum(kernel, c, sol.weights, targets[idx]) + sol.poly[0]
-    res["band_err"] = float(np.abs(vals[idx] - ref).max())
+    res["mesh_cpu_s"] = time.process_time() - cpu0
+    res["band_points"] = int(sum(calls))
+    res["coarse_s"] = 0.0
+    res["vertices"] = len(verts)
+    # Check a sample of the evaluated nodes against the direct sum.
+    where = np.argwhere(exact)
+    idx = np.random.default_rng(0).choice(len(where), min(2000, len(where)), replace=False)
+    pts = origin + where[idx] * h
+    ref = kernel_sum(kernel, c, sol.weights, pts) + sol.poly[0]
+    got = vals[tuple(where[idx].T)]
+    res["band_err"] = float(np.abs(got - ref).max() / np.abs(ref).max())
     res["peak_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
     return res
 
@@ -135,6 +174,9 @@ def run_one(args) -> dict:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", default="3000,10000,30000,100000")
+    ap.add_argument("--large", action="store_true", help="also 300,000 and 1,000,000 (refused up front if too big)")
+    ap.add_argument("--backend", default="auto", choices=["auto", "grid", "fmm"])
+    ap.add_argument("--max-run", type=int, default=300_000, help="larger sizes are refused up front (with the estimate)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--delta", type=float, default=10.0)
     ap.add_argument("--tau", type=float, default=0.01)
@@ -153,7 +195,7 @@ def main(argv=None):
         print(json.dumps(run_one(args)))
         return 0
 
-    sizes = [int(float(s)) for s in args.sizes.split(",")]
+    sizes = [int(float(s)) for s in args.sizes.split(",")] + ([300_000, 1_000_000] if args.large else [])
     print(f"threads: OMP/OpenBLAS/MKL = {args.threads} (fmm3dpy wheel: single-threaded); "
           f"multiorder delta {args.delta} tau {args.tau}; rtol {args.rtol:g}; eval eps {args.eval_eps:g}; "
           f"grid {args.grid}^3", flush=True)
@@ -162,7 +204,8 @@ def main(argv=None):
         cmd = [sys.executable, __file__, "--n", str(n), "--mode", mode or "fast", "--threads", str(args.threads),
                "--delta", str(args.delta), "--tau", str(args.tau), "--rtol", str(args.rtol),
                "--max-iterations", str(args.max_iterations), "--eval-eps", str(args.eval_eps),
-               "--grid", str(args.grid)]
+               "--grid", str(args.grid), "--backend", args.backend,
+               "--max-run", str(args.max_run)]
         if args.memory_limit is not None:
             cmd += ["--memory-limit", str(args.memory_limit)]
         out = subprocess.run(cmd, capture_output=True, text=True, env=os.environ.copy())
@@ -170,9 +213,9 @@ def main(argv=None):
             return {"n": n, "error": out.stderr.strip().splitlines()[-1] if out.stderr.strip() else "failed"}
         return json.loads(out.stdout.strip().splitlines()[-1])
 
-    head = (f"{'N':>8} {'fit s':>7} {'its':>4} {'res':>7} {'|C|':>5} {'peak GB':>7} {'band pts':>8} "
-            f"{'band s':>7} {'64^3 s':>7} {'fit+eval':>8} {'dense s':>7} {'fast/dense':>10} "
-            f"{'poisson s':>9} {'fast/poisson':>12} {'exp':>5}")
+    head = (f"{'N':>8} {'prod':>4} {'fit s':>7} {'its':>4} {'res':>7} {'|C|':>5} {'peak GB':>7} {'eval pts':>8} "
+            f"{'mesh s':>7} {'fit+mesh':>8} {'dense s':>7} {'fast/dense':>10} "
+            f"{'poisson s':>9} {'fast/poisson':>12} {'exp':>5} {'load':>5}")
     print(head, flush=True)
     prev = None
     for n in sizes:
@@ -182,18 +225,19 @@ def main(argv=None):
             continue
         d = child(n, "dense") if n <= args.dense_max else {}
         p = {} if args.no_poisson else child(n, "poisson")
-        total = r["fit_s"] + r["band_s"] + r["coarse_s"]
+        total = r["fit_s"] + r["band_s"]
+        load = os.getloadavg()[0]
         exp = "" if prev is None else f"{math.log(r['fit_s'] / prev[1]) / math.log(n / prev[0]):5.2f}"
         ds = f"{d['dense_s']:7.1f}" if "dense_s" in d else f"{'-':>7}"
         dr = f"{r['fit_s'] / d['dense_s']:10.2f}" if "dense_s" in d else f"{'-':>10}"
         ps = f"{p['poisson_s']:9.1f}" if "poisson_s" in p else f"{'-':>9}"
         pr = f"{r['fit_s'] / p['poisson_s']:12.1f}" if "poisson_s" in p else f"{'-':>12}"
-        print(f"{n:>8} {r['fit_s']:7.1f} {r['iterations']:>4} {r['residual']:7.1e} {r['coarse']:>5} "
-              f"{r['peak_gb']:7.2f} {r['band_points']:>8} {r['band_s']:7.1f} {r['coarse_s']:7.1f} {total:8.1f} "
-              f"{ds} {dr} {ps} {pr} {exp:>5}", flush=True)
+        print(f"{n:>8} {r['backend']:>4} {r['fit_s']:7.1f} {r['iterations']:>4} {r['residual']:7.1e} {r['coarse']:>5} "
+              f"{r['peak_gb']:7.2f} {r['band_points']:>8} {r['band_s']:7.1f} {total:8.1f} "
+              f"{ds} {dr} {ps} {pr} {exp:>5} {load:5.1f}", flush=True)
         print(f"{'':>8} (log10 residual by iteration {r['history']})", flush=True)
-        print(f"{'':>8} (setup {r['setup_s']:.1f} s, short-range nnz {r['short_nnz']}, fit peak "
-              f"{r['fit_peak_gb']:.2f} GB, band max |f - direct| {r['band_err']:.1e}"
+        print(f"{'':>8} (CPU s: fit {r['fit_cpu_s']:.1f}, mesh {r['mesh_cpu_s']:.1f}; setup {r['setup_s']:.1f} s, short-range nnz {r['short_nnz']}, fit peak "
+              f"{r['fit_peak_gb']:.2f} GB, mesh nodes max |f - direct| / max|f| {r['band_err']:.1e}, {r['vertices']} vertices"
               + (f", dense peak {d['peak_gb']:.2f} GB" if "peak_gb" in d else "") + ")", flush=True)
         prev = (n, r["fit_s"])
     return 0

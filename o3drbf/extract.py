@@ -136,9 +136,15 @@ def _candidate_cells(d, margin: float = 0.5):
     """Cells whose corners change sign, or come closer to zero than ``margin``
     times their own spread (a local Lipschitz test for surfaces between the corners)."""
     corners = [d[a : a + d.shape[0] - 1, b : b + d.shape[1] - 1, c : c + d.shape[2] - 1] for a in (0, 1) for b in (0, 1) for c in (0, 1)]
-    mn = np.minimum.reduce(corners)
-    mx = np.maximum.reduce(corners)
-    absmin = np.minimum.reduce([np.abs(x) for x in corners])
+    # In place, one corner at a time: reducing the list would stack 8 copies of
+    # the grid (2-3 GB at 256^3).
+    mn = corners[0].copy()
+    mx = corners[0].copy()
+    absmin = np.abs(corners[0])
+    for x in corners[1:]:
+        np.minimum(mn, x, out=mn)
+        np.maximum(mx, x, out=mx)
+        np.minimum(absmin, np.abs(x), out=absmin)
     return ((mn <= 0) & (mx >= 0)) | (absmin <= margin * (mx - mn))
 
 

@@ -1,10 +1,17 @@
 """Fast kernel sums and a preconditioned Krylov solve for large N.
 
-Three pieces, each usable on its own:
+Four pieces, each usable on its own:
 
+- :class:`GridSum` -- the default product for the multi-order kernel: an
+  Ewald-type Gaussian split, far part by FFT on a grid (particle-mesh), near
+  part as a sparse matrix; 5-10x faster than fmm3dpy's single-threaded wheel
+  (100,000 centres: ~1-3 s a product vs ~30 s), with looser companions for
+  relaxed products (see the class notes);
 - :class:`FastSum` -- ``sum_j w_j phi(|x - c_j|)`` at the centres (the
   matrix-vector product of the fit) or at arbitrary targets, with gradients,
-  in O(N log N) time and O(N) memory;
+  in O(N log N) time and O(N) memory, by fmm3dpy (``backend="fmm"``, and the
+  automatic choice for eps < 1e-8, the Gaussian and any kernel the grid
+  cannot take);
 - :func:`solve` -- the saddle-point system of :mod:`o3drbf.solve` by
   flexible GMRES with a two-level preconditioner (called by
   ``o3drbf.solve.solve(method="fast")``);
@@ -89,7 +96,8 @@ from .kernels import Gaussian, Kernel, MultiOrder
 from .solve import ConvergenceWarning, Solution, available_memory
 from .sums import kernel_matrix, kernel_sum, polynomial_basis
 
-__all__ = ["FastSum", "TwoLevel", "solve", "make_evaluator", "fast_memory", "default_workers", "DEFAULT_EPS"]
+__all__ = ["FastSum", "TwoLevel", "solve", "make_evaluator", "fast_memory", "default_workers", "DEFAULT_EPS",
+           "GridSum", "fast_operator"]
 
 #: Default relative tolerance of fast sums (evaluation).
 DEFAULT_EPS = 1e-6
@@ -488,6 +496,489 @@ class FastSum:
 
 
 # --------------------------------------------------------------------------------------
+# grid (particle-mesh) sums: Gaussian split, FFT far part, sparse near part
+# --------------------------------------------------------------------------------------
+try:  # numba is a dependency; without it the grid backend is unavailable
+    import numba as _numba
+
+    _njit, _prange, HAVE_GRID = _numba.njit, _numba.prange, True
+except ImportError:  # pragma: no cover
+    _numba, HAVE_GRID = None, False
+
+    def _njit(*a, **k):
+        return lambda f: f
+
+    _prange = range
+
+import scipy.fft as _sfft
+
+def _components(kernel):
+    """[(kappa, coef)] with phi(r) = sum coef e^{-kappa r} / (4 pi r) (complex allowed)."""
+    a, b = kernel.decay_rates
+    A, B = kernel.coefficients
+    d2 = kernel.delta ** 2
+    return [(0.0, 1.0 / d2), (complex(a), complex(A) / d2), (complex(b), complex(B) / d2)]
+
+
+def _psi_long(r, kappa, sigma):
+    """G_sigma * e^{-kappa r}/(4 pi r), times e^{-kappa^2 sigma^2 / 2} (far field = the kernel's)."""
+    from scipy.special import erfc, erfcx
+    r = np.maximum(np.asarray(r, float), 1e-7 * sigma)
+    q = math.sqrt(2.0) * sigma
+    x1 = (kappa * sigma**2 - r) / q
+    x2 = (kappa * sigma**2 + r) / q
+    t1 = np.exp(-kappa * r) * erfc(x1)
+    t2 = erfcx(x2) * np.exp(-(kappa * sigma) ** 2 / 2 - r * r / (2 * sigma**2))
+    return (t1 - t2) / (8 * math.pi * r)
+
+
+def long_part(kernel, r, sigma, extra=0.0):
+    """sum_c coef_c e^{-kappa_c^2 extra^2 / 2} psi_long(r; kappa_c, sigma)."""
+    out = np.zeros(np.shape(r), dtype=complex)
+    for kappa, coef in _components(kernel):
+        damp = np.exp(-(kappa * extra) ** 2 / 2)
+        out += coef * damp * _psi_long(r, kappa + 0j, sigma)
+    return out.real
+
+
+@_njit(cache=True)
+def _spread(pts, w, origin, h, s, half, grid):
+    W = 2 * half + 1
+    c = 1.0 / ((2 * math.pi) ** 1.5 * s ** 3)
+    inv = 1.0 / (2 * s * s)
+    wx = np.empty(W); wy = np.empty(W); wz = np.empty(W)
+    for p in range(pts.shape[0]):
+        fx = (pts[p, 0] - origin[0]) / h; fy = (pts[p, 1] - origin[1]) / h; fz = (pts[p, 2] - origin[2]) / h
+        ix = int(math.floor(fx + 0.5)) - half; iy = int(math.floor(fy + 0.5)) - half; iz = int(math.floor(fz + 0.5)) - half
+        for a in range(W):
+            d = (ix + a - fx) * h; wx[a] = math.exp(-d * d * inv)
+            d = (iy + a - fy) * h; wy[a] = math.exp(-d * d * inv)
+            d = (iz + a - fz) * h; wz[a] = math.exp(-d * d * inv)
+        wp = w[p] * c
+        for a in range(W):
+            va = wp * wx[a]
+            for b in range(W):
+                vb = va * wy[b]
+                for q in range(W):
+                    grid[ix + a, iy + b, iz + q] += vb * wz[q]
+
+
+@_njit(cache=True, parallel=True)
+def _gather(pts, origin, h, s, half, u, out, grad, want):
+    W = 2 * half + 1
+    c = 1.0 / ((2 * math.pi) ** 1.5 * s ** 3)
+    inv = 1.0 / (2 * s * s)
+    for p in _prange(pts.shape[0]):
+        wx = np.empty(W); wy = np.empty(W); wz = np.empty(W)
+        dx = np.empty(W); dy = np.empty(W); dz = np.empty(W)
+        fx = (pts[p, 0] - origin[0]) / h; fy = (pts[p, 1] - origin[1]) / h; fz = (pts[p, 2] - origin[2]) / h
+        ix = int(math.floor(fx + 0.5)) - half; iy = int(math.floor(fy + 0.5)) - half; iz = int(math.floor(fz + 0.5)) - half
+        for a in range(W):
+            d = (fx - ix - a) * h; wx[a] = math.exp(-d * d * inv); dx[a] = -d / (s * s) * wx[a]
+            d = (fy - iy - a) * h; wy[a] = math.exp(-d * d * inv); dy[a] = -d / (s * s) * wy[a]
+            d = (fz - iz - a) * h; wz[a] = math.exp(-d * d * inv); dz[a] = -d / (s * s) * wz[a]
+        acc = 0.0; g0 = 0.0; g1 = 0.0; g2 = 0.0
+        for a in range(W):
+            for b in range(W):
+                row = 0.0; rowd = 0.0
+                for q in range(W):
+                    v = u[ix + a, iy + b, iz + q]
+                    row += v * wz[q]
+                    if want:
+                        rowd += v * dz[q]
+                acc += wx[a] * wy[b] * row
+                if want:
+                    g0 += dx[a] * wy[b] * row
+                    g1 += wx[a] * dy[b] * row
+                    g2 += wx[a] * wy[b] * rowd
+        out[p] = c * acc
+        if want:
+            grad[p, 0] = c * g0; grad[p, 1] = c * g1; grad[p, 2] = c * g2
+
+
+@_njit(cache=True)
+def _cells(pts, lo, cell, dims):
+    n = pts.shape[0]
+    key = np.empty(n, np.int64)
+    for p in range(n):
+        i = min(max(int((pts[p, 0] - lo[0]) / cell), 0), dims[0] - 1)
+        j = min(max(int((pts[p, 1] - lo[1]) / cell), 0), dims[1] - 1)
+        k = min(max(int((pts[p, 2] - lo[2]) / cell), 0), dims[2] - 1)
+        key[p] = (i * dims[1] + j) * dims[2] + k
+    return key
+
+
+@_njit(cache=True, parallel=True)
+def _near_count(tp, sp_, start, lo, cell, dims, rc):
+    m = tp.shape[0]
+    cnt = np.zeros(m, np.int64)
+    rc2 = rc * rc
+    for p in _prange(m):
+        i0 = int((tp[p, 0] - lo[0]) / cell); j0 = int((tp[p, 1] - lo[1]) / cell); k0 = int((tp[p, 2] - lo[2]) / cell)
+        c = 0
+        for i in range(max(i0 - 1, 0), min(i0 + 2, dims[0])):
+            for j in range(max(j0 - 1, 0), min(j0 + 2, dims[1])):
+                for k in range(max(k0 - 1, 0), min(k0 + 2, dims[2])):
+                    key = (i * dims[1] + j) * dims[2] + k
+                    for q in range(start[key], start[key + 1]):
+                        d0 = tp[p, 0] - sp_[q, 0]; d1 = tp[p, 1] - sp_[q, 1]; d2 = tp[p, 2] - sp_[q, 2]
+                        if d0 * d0 + d1 * d1 + d2 * d2 <= rc2:
+                            c += 1
+        cnt[p] = c
+    return cnt
+
+
+@_njit(cache=True, parallel=True)
+def _near_fill(tp, sp_, order, start, lo, cell, dims, rc, indptr, indices, data, tab, dr):
+    m = tp.shape[0]
+    rc2 = rc * rc
+    nt = tab.shape[0]
+    for p in _prange(m):
+        i0 = int((tp[p, 0] - lo[0]) / cell); j0 = int((tp[p, 1] - lo[1]) / cell); k0 = int((tp[p, 2] - lo[2]) / cell)
+        c = indptr[p]
+        for i in range(max(i0 - 1, 0), min(i0 + 2, dims[0])):
+            for j in range(max(j0 - 1, 0), min(j0 + 2, dims[1])):
+                for k in range(max(k0 - 1, 0), min(k0 + 2, dims[2])):
+                    key = (i * dims[1] + j) * dims[2] + k
+                    for q in range(start[key], start[key + 1]):
+                        d0 = tp[p, 0] - sp_[q, 0]; d1 = tp[p, 1] - sp_[q, 1]; d2 = tp[p, 2] - sp_[q, 2]
+                        r2 = d0 * d0 + d1 * d1 + d2 * d2
+                        if r2 <= rc2:
+                            x = math.sqrt(r2) / dr
+                            ii = min(int(x), nt - 2)
+                            f = x - ii
+                            indices[c] = order[q]
+                            data[c] = tab[ii] * (1 - f) + tab[ii + 1] * f
+                            c += 1
+
+
+@_njit(cache=True, parallel=True)
+def _near_sum(tp, sp_, wsorted, start, lo, cell, dims, rc, tab, dtab, dr, out, grad, want):
+    m = tp.shape[0]
+    rc2 = rc * rc
+    nt = tab.shape[0]
+    for p in _prange(m):
+        i0 = int((tp[p, 0] - lo[0]) / cell); j0 = int((tp[p, 1] - lo[1]) / cell); k0 = int((tp[p, 2] - lo[2]) / cell)
+        acc = 0.0; g0 = 0.0; g1 = 0.0; g2 = 0.0
+        for i in range(max(i0 - 1, 0), min(i0 + 2, dims[0])):
+            for j in range(max(j0 - 1, 0), min(j0 + 2, dims[1])):
+                for k in range(max(k0 - 1, 0), min(k0 + 2, dims[2])):
+                    key = (i * dims[1] + j) * dims[2] + k
+                    for q in range(start[key], start[key + 1]):
+                        d0 = tp[p, 0] - sp_[q, 0]; d1 = tp[p, 1] - sp_[q, 1]; d2 = tp[p, 2] - sp_[q, 2]
+                        r2 = d0 * d0 + d1 * d1 + d2 * d2
+                        if r2 <= rc2:
+                            x = math.sqrt(r2) / dr
+                            ii = min(int(x), nt - 2)
+                            f = x - ii
+                            acc += wsorted[q] * (tab[ii] * (1 - f) + tab[ii + 1] * f)
+                            if want:
+                                g = wsorted[q] * (dtab[ii] * (1 - f) + dtab[ii + 1] * f)
+                                g0 += g * d0; g1 += g * d1; g2 += g * d2
+        out[p] += acc
+        if want:
+            grad[p, 0] += g0; grad[p, 1] += g1; grad[p, 2] += g2
+
+
+def _fft_workers() -> int:
+    try:
+        return max(1, min(int(os.environ.get("OMP_NUM_THREADS") or os.cpu_count() or 1), os.cpu_count() or 1))
+    except ValueError:
+        return 1
+
+
+#: Bytes allowed for one grid backend's FFT arrays (kernel transform + work arrays).
+GRID_BUDGET = 2 * 2**30
+
+
+class _Mesh:
+    """A grid of spacing h over a box, with the FFT of the grid kernel K (zero-padded: aperiodic)."""
+
+    def __init__(self, lo, hi, h, s, half, ktable, dtype=np.float64):
+        self.h, self.s, self.half, self.dtype = h, s, half, dtype
+        pad = (half + 2) * h
+        self.origin = np.asarray(lo, float) - pad
+        self.shape = tuple(int(math.ceil((hi[i] - lo[i] + 2 * pad) / h)) + 1 for i in range(3))
+        self.fshape = tuple(_sfft.next_fast_len(2 * m - 1, real=True) for m in self.shape)
+        idx = [np.minimum(np.arange(p), p - np.arange(p)).astype(np.int64) for p in self.fshape]
+        n2 = (idx[0][:, None, None] ** 2 + idx[1][None, :, None] ** 2) + idx[2][None, None, :] ** 2
+        kgrid = ktable(n2)  # K at h * sqrt(n2)
+        del n2
+        self.khat = _sfft.rfftn((kgrid * h**3).astype(dtype), workers=_fft_workers())
+        del kgrid
+
+    @staticmethod
+    def nbytes(lo, hi, h, half) -> int:
+        pad = (half + 2) * h
+        shape = [math.ceil((hi[i] - lo[i] + 2 * pad) / h) + 1 for i in range(3)]
+        return int(8 * 4.5 * np.prod([2.0 * m for m in shape]))
+
+    def potential(self, pts, w):
+        grid = np.zeros(self.shape)
+        _spread(pts, w, self.origin, self.h, self.s, self.half, grid)
+        g = _sfft.rfftn(grid.astype(self.dtype, copy=False), s=self.fshape, workers=_fft_workers())
+        del grid
+        g *= self.khat
+        u = _sfft.irfftn(g, s=self.fshape, workers=_fft_workers())
+        del g
+        return np.ascontiguousarray(u[: self.shape[0], : self.shape[1], : self.shape[2]], dtype=float) * self.h**3
+
+    def gather(self, u, pts, gradient):
+        out = np.empty(len(pts))
+        grad = np.empty((len(pts), 3)) if gradient else np.empty((1, 3))
+        _gather(pts, self.origin, self.h, self.s, self.half, u, out, grad, gradient)
+        return (out, grad) if gradient else out
+
+    def covers(self, pts):
+        lo = self.origin + (self.half + 1) * self.h
+        hi = self.origin + (np.array(self.shape) - self.half - 2) * self.h
+        return bool((pts.min(axis=0) >= lo).all() and (pts.max(axis=0) <= hi).all())
+
+
+class GridSum:
+    """Fast ``sum_j w_j phi(|x - c_j|)`` for the multi-order kernel by a grid (particle-mesh) split.
+
+    The kernel is split as in Ewald summation, term by term (Laplace and
+    Yukawa): ``phi = phi_L + phi_S`` with
+
+        phi_L = sum_c coef_c e^{-kappa_c^2 sigma^2 / 2} (G_sigma * e^{-kappa_c r} / (4 pi r)),
+
+    smooth (bandwidth ~ 1 / sigma) and equal to phi beyond a few sigma, and
+    ``phi_S = phi - phi_L`` short-ranged (cut where ``|phi_S| < eps phi(0)``).
+    The far part is three Gaussian convolutions: spread the weights with a
+    Gaussian of std s = sigma / sqrt(3) onto a grid of spacing
+    ``h = s / ratio``, convolve with the grid kernel K (its zero-padded FFT,
+    closed-form erfc expressions), gather with the same Gaussian.  The near
+    part is a sparse matrix (centres) or a compiled cell-list sum (targets),
+    with phi_S from a 32,768-entry table.  Coincident points need no special
+    case: the grid includes phi_L(0), the near part phi_S(0).
+
+    Parameters
+    ----------
+    kernel : MultiOrder
+    centres : (N, 3) array
+    eps : float
+        Relative tolerance, 1e-9..1e-2 (sets the split, the stencil and h).
+    neighbours : int, optional
+        Near-field size: sigma is chosen so that the cut-off radius holds about
+        this many centres (more: smaller grid, larger sparse part).  Default
+        N / 100 within [100, 1000] (at N = 10,000, 1,000 neighbours made the
+        near part of an evaluation 24 of 51 s: a tenth of all centres).
+        Measured at N = 100,000, eps 1e-5 (loaded machine): 400 -> 8.4 s a
+        product (grid 360x360x135), 1,000 -> 2.8 s (240x240x96), 2,000 -> 2.7 s.
+
+    Raises
+    ------
+    ValueError
+        Not a multi-order kernel, confluent, or numba missing.
+    MemoryError
+        The grid would exceed ``GRID_BUDGET``.
+    """
+
+    def __init__(self, kernel: Kernel, centres, eps: float = DEFAULT_EPS, neighbours: int | None = None,
+                 budget: int = GRID_BUDGET, tree: cKDTree | None = None):
+        if not HAVE_GRID:
+            raise ValueError("the grid backend needs numba; use backend='fmm'")
+        if not isinstance(kernel, MultiOrder) or kernel.coefficients is None:
+            raise ValueError(f"the grid backend supports the non-confluent multi-order kernel, not {kernel!r}")
+        t0 = time.perf_counter()
+        self.kernel = kernel
+        self.centres = np.ascontiguousarray(centres, dtype=float)
+        self.n = n = len(self.centres)
+        self.eps = _clip_eps(eps)
+        eps = self.eps / 10  # measured errors ~1-2x the design tolerance: keep the result below eps
+        self.tree = cKDTree(self.centres) if tree is None else tree
+        self.phi0 = float(kernel.value_at_zero)
+        self.mode = "grid"
+        from scipy.special import erfcinv
+
+        rng = np.random.default_rng(0)
+        sample = self.centres[rng.choice(n, min(n, 2000), replace=False)]
+        if neighbours is None:
+            neighbours = min(max(n // 100, 100), 1000)
+        k = int(min(max(neighbours, 8), max(n // 4, 2)))
+        d, _ = self.tree.query(sample, k=k)
+        rc = max(float(np.median(d[:, -1])), 1e-6 * max(float(np.ptp(self.centres, axis=0).max()), 1e-300))
+        sigma = rc / (math.sqrt(2.0) * float(erfcinv(eps)))
+        s = sigma / math.sqrt(3.0)
+        # aliasing of a Gaussian of std s sampled at h: ~exp(-2 pi^2 s^2 / h^2)
+        ratio = max(0.7, math.sqrt(math.log(10.0 / eps) / (2 * math.pi**2)))
+        h = s / ratio
+        half = int(math.ceil(math.sqrt(2 * math.log(10.0 / eps)) * ratio))
+        self.s, self.h, self.half, self.sigma = s, h, half, sigma
+        lo, hi = self.centres.min(axis=0), self.centres.max(axis=0)
+        need = _Mesh.nbytes(lo, hi, h, half)
+        if need > budget:
+            raise MemoryError(f"the grid backend needs ~{need / 2**30:.1f} GB of FFT arrays (budget "
+                              f"{budget / 2**30:.1f} GB); use backend='fmm' or more neighbours")
+        # Near part: phi_S = phi - phi_L on a table, cut where |phi_S| < eps phi(0).
+        nt = 1 << 15
+        rr = np.linspace(0.0, 1.3 * rc + 8 * sigma, nt)
+        phis = kernel(rr) - long_part(kernel, rr, sigma)
+        big = np.nonzero(np.abs(phis) > eps * self.phi0)[0]
+        self.rc = float(rr[min(big[-1] + 1, nt - 1)]) if len(big) else float(rr[1])
+        self.tab = phis
+        self.dr = float(rr[1] - rr[0])
+        dphis = np.gradient(phis, self.dr)
+        self.dtab = np.empty(nt)
+        self.dtab[1:] = dphis[1:] / rr[1:]
+        self.dtab[0] = self.dtab[1]
+        self._meshes = []
+        self.mesh = self._mesh(lo, hi)
+        self._cell_setup()
+        self._near_m = None
+        key = np.floor((self.centres - self.mesh.origin) / (4 * h)).astype(np.int64)
+        self._perm = np.lexsort((key[:, 2], key[:, 1], key[:, 0]))  # grid order: cache-friendly spreading
+        self._sorted = np.ascontiguousarray(self.centres[self._perm])
+        self.info = {"mode": "grid (Gaussian split: FFT far part + sparse near part)", "split": "grid",
+                     "near_radius": self.rc, "sigma": sigma, "h": h, "grid": self.mesh.shape,
+                     "fft": self.mesh.fshape, "stencil": 2 * half + 1, "grid_bytes": need,
+                     "setup_seconds": time.perf_counter() - t0}
+
+    def _ktable(self, n2):
+        top = int(n2.max())
+        vals = long_part(self.kernel, self.h * np.sqrt(np.arange(top + 1.0)), self.s, extra=math.sqrt(2.0) * self.s)
+        return vals[n2]
+
+    def _mesh(self, lo, hi):
+        for m in self._meshes:
+            if m.covers(np.array([lo, hi])):
+                return m
+        # Single-precision FFTs (half the time and memory) where ~1e-6 round-off is far below eps.
+        m = _Mesh(lo, hi, self.h, self.s, self.half, self._ktable, np.float32 if self.eps >= 1e-4 else np.float64)
+        self._meshes = [m] + self._meshes[:1]
+        return m
+
+    def _cell_setup(self):
+        lo = self.centres.min(axis=0)
+        cell = self.rc
+        dims = np.maximum(np.ceil((self.centres.max(axis=0) - lo) / cell).astype(np.int64), 1)
+        key = _cells(self.centres, lo, cell, dims)
+        order = np.argsort(key, kind="stable")
+        start = np.searchsorted(key[order], np.arange(int(np.prod(dims)) + 1)).astype(np.int64)
+        self._cl = (lo, cell, dims, order, np.ascontiguousarray(self.centres[order]), start)
+
+    @property
+    def near(self):
+        """Sparse centre-centre matrix of phi_S (built on first use)."""
+        if self._near_m is None:
+            lo, cell, dims, order, spts, start = self._cl
+            cnt = _near_count(self.centres, spts, start, lo, cell, dims, self.rc)
+            indptr = np.zeros(self.n + 1, np.int64)
+            np.cumsum(cnt, out=indptr[1:])
+            indices = np.empty(indptr[-1], np.int32)
+            data = np.empty(indptr[-1])
+            _near_fill(self.centres, spts, order.astype(np.int32), start, lo, cell, dims, self.rc, indptr,
+                       indices, data, self.tab, self.dr)
+            self._near_m = sp.csr_matrix((data, indices, indptr), shape=(self.n, self.n))
+            self.info["near_nnz"] = int(indptr[-1])
+        return self._near_m
+
+    def _tier(self, eps):
+        """The loosest operator at least as accurate as ``eps``: this one, or a cached
+        looser companion (tolerance 1e-4 or 1e-3, 300 neighbours: a coarser grid,
+        a 9-11 point stencil instead of 13-15, a smaller near part)."""
+        if eps is None:
+            return self
+        for tol in (1e-3, 1e-4):
+            if tol <= eps and tol >= 10 * self.eps:
+                tiers = self.__dict__.setdefault("_tiers", {})
+                if tol not in tiers:
+                    tiers[tol] = GridSum(self.kernel, self.centres, eps=tol, neighbours=min(300, max(self.n // 300, 64)), tree=self.tree)
+                return tiers[tol]
+        return self
+
+    def matvec(self, w, eps: float | None = None) -> np.ndarray:
+        """(Phi w)_i, self term included, to relative accuracy ``eps`` (default: the operator's)."""
+        w = np.asarray(w, dtype=float)
+        op = self._tier(eps)
+        if op is not self:
+            return op.matvec(w)
+        p = self._perm
+        u = self.mesh.potential(self._sorted, np.ascontiguousarray(w[p]))
+        out = np.empty(self.n)
+        out[p] = self.mesh.gather(u, self._sorted, False)
+        return out + self.near @ w
+
+    def evaluate(self, w, targets, gradient: bool = False, eps: float | None = None):
+        """sum_j w_j phi(|x - c_j|) (and its gradient) at arbitrary targets."""
+        t = np.ascontiguousarray(np.asarray(targets, dtype=float).reshape(-1, 3))
+        w = w if isinstance(w, np.ndarray) and w.dtype == float else np.asarray(w, dtype=float)
+        if len(t) == 0:
+            return (np.zeros(0), np.zeros((0, 3))) if gradient else np.zeros(0)
+        if self.mesh.covers(t):
+            mesh = self.mesh
+        else:
+            mesh = self._mesh(np.minimum(self.centres.min(0), t.min(0)), np.maximum(self.centres.max(0), t.max(0)))
+        cached = getattr(self, "_ucache", None)
+        if cached is not None and cached[0] is mesh and cached[1] is w:
+            u = cached[2]  # same weights object (an evaluator): reuse the grid potential
+        else:
+            u = mesh.potential(self._sorted, np.ascontiguousarray(w[self._perm]))
+            self._ucache = (mesh, w, u)
+        # Targets in grid order: the stencil reads (and the cell-list scans) stay in cache.
+        key = np.floor((t - mesh.origin) / (4 * mesh.h)).astype(np.int64)
+        tp = np.lexsort((key[:, 2], key[:, 1], key[:, 0]))
+        ts = np.ascontiguousarray(t[tp])
+        out = mesh.gather(u, ts, gradient)
+        vals, grad = out if gradient else (out, np.empty((1, 3)))
+        lo, cell, dims, order, spts, start = self._cl
+        _near_sum(ts, spts, np.ascontiguousarray(w[order]), start, lo, cell, dims, self.rc, self.tab, self.dtab,
+                  self.dr, vals, grad, gradient)
+        v_out = np.empty(len(t))
+        v_out[tp] = vals
+        if gradient:
+            g_out = np.empty((len(t), 3))
+            g_out[tp] = grad
+            return v_out, g_out
+        return v_out
+
+    def from_subset(self, subset):
+        """A callable ``(w_sub, eps) -> sum_{j in subset} w_j phi(|c_i - c_j|)`` at every centre."""
+        subset = np.asarray(subset)
+        cache = {}
+
+        def apply(w, eps=None):
+            op = self._tier(eps)
+            if op not in cache:
+                key = np.floor((self.centres[subset] - op.mesh.origin) / (4 * op.h)).astype(np.int64)
+                pos = np.lexsort((key[:, 2], key[:, 1], key[:, 0]))
+                cache[op] = (np.ascontiguousarray(self.centres[subset[pos]]), pos, op.near[:, subset].tocsr())
+            pts, pos, cols = cache[op]
+            u = op.mesh.potential(pts, np.ascontiguousarray(np.asarray(w, dtype=float)[pos]))
+            out = np.empty(self.n)
+            out[op._perm] = op.mesh.gather(u, op._sorted, False)
+            return out + cols @ w
+
+        return apply
+
+
+def fast_operator(kernel: Kernel, centres, eps: float = DEFAULT_EPS, backend: str = "auto"):
+    """The product for a fast solve: :class:`GridSum` or :class:`FastSum`.
+
+    ``backend="auto"`` takes the grid for the multi-order kernel when numba is
+    there, ``eps >= 1e-8`` and the grid fits ``GRID_BUDGET`` (it is 5-10x
+    faster than fmm3dpy's single-threaded wheel: 100,000 centres, 2.8 s vs
+    ~30 s a product), else the FMM (``"fmm"``)."""
+    if backend not in ("auto", "grid", "fmm"):
+        raise ValueError(f"backend must be 'auto', 'grid' or 'fmm', got {backend!r}")
+    if backend == "grid":
+        return GridSum(kernel, centres, eps=eps)
+    if backend == "auto" and HAVE_GRID and isinstance(kernel, MultiOrder) and kernel.coefficients is not None \
+            and eps >= 1e-8 and len(centres) >= 64:
+        try:
+            return GridSum(kernel, centres, eps=eps)
+        except MemoryError as exc:
+            import logging
+
+            logging.getLogger("o3drbf").warning(
+                "fast products: %s; falling back to fmm3dpy (single-threaded wheel: ~%.0f s a product)",
+                exc, 30.0 * len(centres) / 1e5,
+            )
+    return FastSum(kernel, centres, eps=eps)
+
+
+# --------------------------------------------------------------------------------------
 # preconditioner
 # --------------------------------------------------------------------------------------
 def _uniform_subset(points: np.ndarray, count: int) -> np.ndarray:
@@ -719,12 +1210,16 @@ def _fgmres(matvec, b, prec, rtol, max_iterations, restart, true_matvec, bar=Non
 # memory
 # --------------------------------------------------------------------------------------
 def fast_memory(n: int, restart: int = 50, eps: float = 1e-6) -> int:
-    """Rough peak bytes of a fast solve with ``n`` constraints."""
-    fmm = _FMM_BYTES_PER_POINT * n * (1.0 if eps <= 1e-6 else 0.6)
+    """Rough peak bytes of a fast solve with ``n`` constraints.
+
+    The larger of the FMM route and the grid route (near parts of ~1,000 +
+    2 x 300 entries a row, 12 bytes each, and up to three FFT grids);
+    measured peak at N = 100,000 (grid): 2.3 GB for the fit."""
+    fmm = _FMM_BYTES_PER_POINT * n * (1.0 if eps <= 1e-6 else 0.6) + 12 * n * 300
+    grid = 12 * n * 1600 + min(GRID_BUDGET, 1e4 * n)
     krylov = 2 * (restart + 2) * n * 8
-    sparse = 12 * n * (64 + 300)  # near field + typical short-range list
-    coarse = 8 * 6000**2 + 256 * 2**20
-    return int(fmm + krylov + sparse + coarse)
+    precond = 12 * n * 64 + 8 * 6000**2 + 256 * 2**20
+    return int(max(fmm, grid) + krylov + precond)
 
 
 # --------------------------------------------------------------------------------------
@@ -744,6 +1239,7 @@ def solve(
     preconditioner: dict | None = None,
     relax: bool = True,
     operator: FastSum | None = None,
+    backend: str = "auto",
 ) -> Solution:
     """Solve ``[Phi + diag(lam), Q; Q^T, 0] [w; p] = [y; 0]`` with fast products.
 
@@ -772,6 +1268,8 @@ def solve(
     operator : FastSum, optional
         A prebuilt product for these centres (or any object with its
         interface, e.g. a dense stand-in for testing the preconditioner).
+    backend : {"auto", "grid", "fmm"}
+        The product when ``operator`` is None (:func:`fast_operator`).
 
     Returns
     -------
@@ -806,7 +1304,7 @@ def solve(
     q = polynomial_basis(centres, kernel.polynomial_degree)
     m = q.shape[1]
     t_setup = time.perf_counter()
-    fast = FastSum(kernel, centres, eps=eps) if operator is None else operator
+    fast = fast_operator(kernel, centres, eps=eps, backend=backend) if operator is None else operator
     prec_a = TwoLevel(fast, lam, **(preconditioner or {}))
     # Constraint preconditioner: exact elimination of p with M ~ (Phi + Lambda)^{-1}.
     mq = np.column_stack([prec_a(q[:, k]) for k in range(m)]) if m else np.zeros((n, 0))
@@ -865,21 +1363,40 @@ def solve(
 # --------------------------------------------------------------------------------------
 # evaluator
 # --------------------------------------------------------------------------------------
-def make_evaluator(kernel: Kernel, centres, weights, eps: float = DEFAULT_EPS, chunk: int = 1_000_000):
+def make_evaluator(kernel: Kernel, centres, weights, eps: float = DEFAULT_EPS, chunk: int = 1_000_000,
+                   backend: str = "auto"):
     """A callable ``(points (M, 3), gradient) -> values (M,) [, grads (M, 3)]`` for
     ``ImplicitSurface.evaluator``: ``sum_i w_i phi(|x - c_i|)`` without the
     polynomial, by FMM with targets (multi-order), sparse sums (Gaussian) or
-    direct sums (thin-plate).  Targets are processed ``chunk`` at a time."""
-    fast = FastSum(kernel, centres, eps=eps)
+    direct sums (thin-plate); ``backend`` as in :func:`fast_operator` (the
+    grid for the multi-order kernel by default).  Targets are processed
+    ``chunk`` at a time."""
+    fast = fast_operator(kernel, centres, eps=eps, backend=backend)
+    if isinstance(fast, GridSum):
+        # The grid's gradients are ~10x less accurate than its values: gradients
+        # (vertex normals, few points) come from a second grid at eps / 10.
+        fine = {}
+
+        def pick(gradient):
+            if not gradient:
+                return fast
+            if "op" not in fine:
+                fine["op"] = GridSum(kernel, fast.centres, eps=eps / 10, tree=fast.tree)
+            return fine["op"]
+    else:
+
+        def pick(gradient):
+            return fast
     weights = np.ascontiguousarray(weights, dtype=float)
     if weights.shape != (fast.n,):
         raise ValueError(f"weights must have shape ({fast.n},), got {weights.shape}")
 
     def evaluator(points, gradient=False):
         pts = np.asarray(points, dtype=float).reshape(-1, 3)
+        op = pick(gradient)
         if len(pts) <= chunk:
-            return fast.evaluate(weights, pts, gradient=gradient)
-        parts = [fast.evaluate(weights, pts[s : s + chunk], gradient=gradient) for s in range(0, len(pts), chunk)]
+            return op.evaluate(weights, pts, gradient=gradient)
+        parts = [op.evaluate(weights, pts[s : s + chunk], gradient=gradient) for s in range(0, len(pts), chunk)]
         if gradient:
             return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
         return np.concatenate(parts)

@@ -165,9 +165,10 @@ def test_evaluator_values_and_gradients(problem3k, name):
     ref_v, ref_g = kernel_sum(kernel, c, w, targets, gradient=True)
     assert np.linalg.norm(vals - ref_v) / np.linalg.norm(ref_v) < 1e-6
     assert np.linalg.norm(grads - ref_g) / np.linalg.norm(ref_g) < 1e-5
-    # targets on centres: the self term phi(0) is included
-    np.testing.assert_allclose(vals[m : m + 20], ref_v[m : m + 20], rtol=1e-5, atol=1e-7 * np.abs(ref_v).max())
-    np.testing.assert_allclose(ev(targets[:300], False), ref_v[:300], rtol=1e-5, atol=1e-7 * np.abs(ref_v).max())
+    # targets on centres: the self term phi(0) is included.  Pointwise to eps of
+    # max |f| (the grid backend spreads its error evenly; fmm3dpy gave ~eps / 30).
+    np.testing.assert_allclose(vals[m : m + 20], ref_v[m : m + 20], rtol=1e-5, atol=1e-6 * np.abs(ref_v).max())
+    np.testing.assert_allclose(ev(targets[:300], False), ref_v[:300], rtol=1e-5, atol=1e-6 * np.abs(ref_v).max())
 
 
 def test_evaluator_chunks_and_thinplate_direct(problem3k):
@@ -182,10 +183,10 @@ def test_evaluator_chunks_and_thinplate_direct(problem3k):
 
 
 # -- solve --------------------------------------------------------------------------------
-def _agreement(kernel, n, rtol, seed=2):
+def _agreement(kernel, n, rtol, seed=2, backend="auto"):
     c, y, lam = torus_problem(n, seed=seed)
     dense = solve(kernel, c, y, lam, method="dense")
-    sol = fast.solve(kernel, c, y, lam, rtol=rtol, preconditioner={"exact_below": 0})
+    sol = fast.solve(kernel, c, y, lam, rtol=rtol, preconditioner={"exact_below": 0}, backend=backend)
     assert sol.method == "fast" and sol.residual <= rtol and sol.info["converged"]
     assert sol.info["preconditioner"]["coarse"] < 0.2 * len(c)
     assert sol.info["constraint"] < 1e-12  # Q^T w = 0 exactly (constraint preconditioner)
@@ -208,9 +209,12 @@ def test_fast_solve_matches_dense(name, n, rtol):
 
 @pytest.mark.slow
 @pytest.mark.skipif(os.environ.get("O3DRBF_SLOW") != "1", reason="N = 8,000 proof of issue 4 (~1-2 min): set O3DRBF_SLOW=1")
-def test_fast_solve_matches_dense_8k():
-    """Issue 4's proof: at N = 8,000 the fast f matches the dense one to 1e-6 at 10,000 points."""
-    _agreement(KERNELS["multiorder-10"], 8000, 1e-8)
+@pytest.mark.parametrize("backend", ["fmm", "grid"])
+def test_fast_solve_matches_dense_8k(backend):
+    """Issue 4's proof: at N = 8,000 the fast f matches the dense one to 1e-6 at 10,000 points
+    (grid measured: 4.9e-7 in 11 s, dense 50 s)."""
+    sol = _agreement(KERNELS["multiorder-10"], 8000, 1e-8, backend=backend)
+    assert (sol.info["split"].get("split") == "grid") == (backend == "grid")
 
 
 def test_solve_entry_point_and_gaussian():
@@ -258,3 +262,85 @@ def test_iteration_count_nearly_flat():
         counts.append(sol.iterations)
     assert max(counts) < 15, counts
     assert counts[1] <= 1.4 * counts[0], counts
+
+
+# -- grid (particle-mesh) backend -----------------------------------------------------------
+GRID_KERNELS = ["multiorder-10", "multiorder-3.16", "multiorder-complex"]
+
+
+@pytest.mark.parametrize("name", GRID_KERNELS)
+@pytest.mark.parametrize("eps", [1e-3, 1e-7])
+def test_grid_product_matches_dense(problem3k, dense3k, name, eps):
+    """Gaussian-split grid + sparse near part against the dense matrix, all three regimes."""
+    kernel = KERNELS[name]
+    c = problem3k[0]
+    w = np.random.default_rng(7).normal(size=len(c))
+    ref = dense3k(name) @ w
+    g = fast.GridSum(kernel, c, eps=eps)
+    err = np.linalg.norm(g.matvec(w) - ref) / np.linalg.norm(ref)
+    assert err < eps, f"{name}: relative error {err:.1e} at eps {eps:g}"
+    assert err > 1e-3 * eps  # really an approximation (not silently a dense product)
+
+
+def test_grid_looser_products_and_subset(problem3k, dense3k):
+    """Products asked at 1e-3 come from a looser (cheaper) companion and stay within 1e-3;
+    the coarse-to-fine update Phi[:, C] z_C is right at both accuracies."""
+    kernel = KERNELS["multiorder-10"]
+    c = problem3k[0]
+    a = dense3k("multiorder-10")
+    g = fast.GridSum(kernel, c, eps=1e-7)
+    w = np.random.default_rng(8).normal(size=len(c))
+    ref = a @ w
+    tight = np.linalg.norm(g.matvec(w) - ref) / np.linalg.norm(ref)
+    loose = np.linalg.norm(g.matvec(w, eps=1e-3) - ref) / np.linalg.norm(ref)
+    assert tight < 1e-7 and 10 * tight < loose < 1e-3, (tight, loose)
+    assert g._tiers[1e-3].mesh.shape < g.mesh.shape
+    subset = np.random.default_rng(13).choice(len(c), 300, replace=False)  # unsorted on purpose
+    z = np.random.default_rng(14).normal(size=300)
+    ref = a[:, subset] @ z
+    apply = g.from_subset(subset)
+    assert np.linalg.norm(apply(z) - ref) / np.linalg.norm(ref) < 1e-7
+    assert np.linalg.norm(apply(z, 1e-2) - ref) / np.linalg.norm(ref) < 1e-3
+
+
+def test_grid_duplicates_and_targets_outside_the_centres_box():
+    rng = np.random.default_rng(17)
+    c = np.vstack([rng.uniform(-0.5, 0.5, (400, 3)), np.zeros((2, 3))])
+    kernel = MultiOrder(10.0, 0.01)
+    w = rng.normal(size=len(c))
+    g = fast.GridSum(kernel, c, eps=1e-6)
+    ref = kernel_matrix(kernel, c) @ w
+    assert np.linalg.norm(g.matvec(w) - ref) / np.linalg.norm(ref) < 1e-6
+    far = rng.uniform(-1.5, 1.5, (500, 3))  # outside the centres' grid: a larger one is built
+    vals = g.evaluate(w, far)
+    ref = kernel_sum(kernel, c, w, far)
+    assert np.linalg.norm(vals - ref) / np.linalg.norm(ref) < 1e-6
+
+
+def test_operator_choice():
+    c = torus_problem(1000)[0]
+    assert isinstance(fast.fast_operator(MultiOrder(10.0, 0.01), c, eps=1e-7), fast.GridSum)
+    assert isinstance(fast.fast_operator(MultiOrder(10.0, 0.01), c, eps=1e-10), fast.FastSum)
+    assert isinstance(fast.fast_operator(MultiOrder(10.0, 0.01), c, eps=1e-7, backend="fmm"), fast.FastSum)
+    assert isinstance(fast.fast_operator(Gaussian(0.05), c, eps=1e-6), fast.FastSum)
+    with pytest.raises(ValueError, match="backend"):
+        fast.fast_operator(MultiOrder(), c, backend="gpu")
+    with pytest.raises(ValueError, match="multi-order"):
+        fast.GridSum(Gaussian(0.05), c)
+    with pytest.raises(MemoryError, match="grid"):
+        fast.GridSum(MultiOrder(10.0, 0.01), c, budget=10**5)
+
+
+def test_grid_solve_matches_dense():
+    """fast.solve on grid products (relaxed to the looser companions as the residual
+    falls) agrees with the dense fit: f at 10,000 points to 1e-5 relative at rtol 1e-7."""
+    kernel = KERNELS["multiorder-10"]
+    c, y, lam = torus_problem(3300, seed=2)
+    dense = solve(kernel, c, y, lam, method="dense")
+    sol = fast.solve(kernel, c, y, lam, rtol=1e-7, preconditioner={"exact_below": 0}, backend="grid")
+    assert sol.info["split"]["split"] == "grid" and sol.residual <= 1e-7
+    x = np.random.default_rng(3).uniform(-1, 1, (10000, 3))
+    f_dense = kernel_sum(kernel, c, dense.weights, x) + dense.poly[0]
+    f_fast = kernel_sum(kernel, c, sol.weights, x) + sol.poly[0]
+    err = np.abs(f_fast - f_dense).max() / np.abs(f_dense).max()
+    assert err < 1e-5, f"max relative difference {err:.1e}"
