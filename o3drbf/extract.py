@@ -277,6 +277,9 @@ def extract_mesh(
             f"No surface found at level {level}: f - level ranges over [{vals.min():.3g}, {vals.max():.3g}] in the grid"
         )
     verts, faces, grid_normals, _ = marching_cubes(vals, level=0.0, spacing=(h, h, h), allow_degenerate=False)
+    # f > 0 inside: skimage winds its triangles to face up the gradient (inward); flip them
+    # so triangles face outward, like the vertex normals (positive signed volume).
+    faces = np.ascontiguousarray(faces[:, ::-1])
     verts_box = verts + origin
     if normals == "exact":
         _, g = surface.evaluate_box(verts_box, gradient=True, approximate=True)
