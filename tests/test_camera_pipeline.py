@@ -92,7 +92,8 @@ def test_scans_hold_noise_and_outliers(scans):
 def test_cli_scan_json_and_api_with_cameras(scans, capsys):
     d, points, owner, cams = scans
     out = d / "cli.ply"
-    assert main(["reconstruct", str(d / "scan.json"), "-o", str(out), *FIT]) == 0
+    # --no-auto: the paper's fixed parameters, the API's default, so both build the same mesh
+    assert main(["reconstruct", str(d / "scan.json"), "-o", str(out), *FIT, "--no-auto"]) == 0
     text = capsys.readouterr().out
     assert "cameras          3; surface constraints seen per camera" in text
     assert "outliers removed" in text and "watertight       yes" in text
