@@ -35,7 +35,7 @@ def main(argv=None) -> int:
     print(f"sample: {sample} ({len(points):,} noisy points on three stacked tori, with normals)")
 
     t0 = time.perf_counter()
-    result = o3drbf.reconstruct(points, normals, resolution=args.resolution, progress=True)
+    result = o3drbf.reconstruct(points, normals, resolution=args.resolution, auto=True, progress=True)
     rbf_path = io.write_mesh(args.out / "tori_stack_o3drbf.ply", result.mesh)
     print(summary(result, points, sample, rbf_path, seconds=time.perf_counter() - t0))
 
