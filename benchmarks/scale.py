@@ -11,6 +11,8 @@ its own subprocess so peaks are per N.  ``--large`` adds 300k and 1M: each is
 refused up front (with its memory estimate) when it would not fit.
 
     python benchmarks/scale.py --sizes 3000,10000,30000,100000 --threads 2
+    python benchmarks/scale.py --sizes 30000,100000 --large --no-poisson \
+        --preconditioner '{"nested": 0, "damping": 1.5}'   # the scheme before the nested level
 
 Thread counts are fixed before NumPy loads (OMP / OpenBLAS / MKL) and printed.
 fmm3dpy's PyPI wheel is single-threaded whatever the setting.
@@ -125,7 +127,9 @@ def run_one(args) -> dict:
         return res
     cpu0 = time.process_time()
     t = time.perf_counter()
-    sol = fast.solve(kernel, c, y, lam, rtol=args.rtol, max_iterations=args.max_iterations, backend=args.backend)
+    pre = json.loads(args.preconditioner) if args.preconditioner else None
+    sol = fast.solve(kernel, c, y, lam, rtol=args.rtol, max_iterations=args.max_iterations, backend=args.backend,
+                     preconditioner=pre)
     res["fit_s"] = time.perf_counter() - t
     res["fit_cpu_s"] = time.process_time() - cpu0
     res["backend"] = sol.info["split"].get("split", sol.info["split"].get("mode", "?"))[:4]
@@ -187,6 +191,8 @@ def main(argv=None):
     ap.add_argument("--dense-max", type=int, default=10000)
     ap.add_argument("--memory-limit", type=float, default=None, help="GB (default 80%% of available)")
     ap.add_argument("--no-poisson", action="store_true")
+    ap.add_argument("--preconditioner", default=None,
+                    help='TwoLevel options as JSON, e.g. \'{"nested": 0, "damping": 1.5}\' (the old capped scheme)')
     ap.add_argument("--n", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--mode", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -196,7 +202,8 @@ def main(argv=None):
         return 0
 
     sizes = [int(float(s)) for s in args.sizes.split(",")] + ([300_000, 1_000_000] if args.large else [])
-    print(f"threads: OMP/OpenBLAS/MKL = {args.threads} (fmm3dpy wheel: single-threaded); "
+    print((f"preconditioner: {args.preconditioner}\n" if args.preconditioner else "")
+          + f"threads: OMP/OpenBLAS/MKL = {args.threads} (fmm3dpy wheel: single-threaded); "
           f"multiorder delta {args.delta} tau {args.tau}; rtol {args.rtol:g}; eval eps {args.eval_eps:g}; "
           f"grid {args.grid}^3", flush=True)
 
@@ -208,6 +215,8 @@ def main(argv=None):
                "--max-run", str(args.max_run)]
         if args.memory_limit is not None:
             cmd += ["--memory-limit", str(args.memory_limit)]
+        if args.preconditioner:
+            cmd += ["--preconditioner", args.preconditioner]
         out = subprocess.run(cmd, capture_output=True, text=True, env=os.environ.copy())
         if out.returncode != 0:
             return {"n": n, "error": out.stderr.strip().splitlines()[-1] if out.stderr.strip() else "failed"}

@@ -55,14 +55,19 @@ p``, so every search direction satisfies ``Q^T w = t`` and the iterates
 satisfy the polynomial constraint ``Q^T w = 0`` to rounding (the constant
 p0 is solved for, not projected away).  M is two-level multiplicative:
 
-1. coarse: a uniform subset C of about N/8 centres (at most ``max_coarse``),
-   the exact kernel system on C factored by Cholesky:
-   ``z_C = (Phi_CC + Lambda_C)^{-1} r_C``;
+1. coarse: a uniform subset C of about N/8 centres, the exact kernel system
+   on C factored by Cholesky, ``z_C = (Phi_CC + Lambda_C)^{-1} r_C``, while
+   |C| <= ``max_coarse`` (6,000).  Above it, up to N = 144,000 the coarse
+   level is capped at 6,000 centres; beyond, the coarse system on N/8
+   centres is solved by 8 nested FGMRES steps with products on C (grid /
+   FMM at 1e-3) preconditioned by the same scheme on C (recursively: its
+   own coarse level is min(N/64, 6,000) centres by Cholesky up to
+   N = 1,152,000, nested again beyond);
 2. residual update ``r' = r - (Phi + Lambda)[:, C] z_C`` (dense block when
    small, else a fast sum from the coarse centres);
 3. local: ``z += S^{-1} r'`` with S the near-field matrix of the *tapered*
    kernel ``phi(r) - phi(R)`` on the k = 64 nearest neighbours (positive
-   definite, unlike a plain cut-off), its diagonal damped by 1.5, solved by
+   definite, unlike a plain cut-off), its diagonal damped by 2, solved by
    10 Jacobi-preconditioned CG steps.
 
 Measured (delta 10, tau 0.01, torus + 10% exterior, FGMRES to 1e-6, dense
@@ -73,6 +78,18 @@ depends on N / |C| (16k with |C| = 1000: 13), so beyond ``8 * max_coarse``
 (48,000) it grows slowly (30k: 14 with FMM products; delta 3.16: 11 at 2k and
 8k).  Exact (sparse LU) local solves gave the same counts as 10 CG steps but
 took 77 s with 22x fill-in at 30k, hence CG.
+
+Scaling (grid products, 2 cores, benchmarks/scale.py; the counts above were
+with damping 1.5 and the coarse level capped at 6,000 centres): capped, the
+count was 14 / 38 / 16 / 36 at 30k / 50k / 100k / 300k -- the 50k plateau
+(residual stuck near 1e-4) was the damping (2.0: 10 iterations; 2.5 and 3.0
+no better at 100k), the 300k growth the cap (ratio N / |C| = 50).  The
+nested coarse level needs about 8 inner steps: at 100k 3 steps gave 34
+iterations, a 1e-2 inner tolerance 30, 8 steps 12 (but the fit took 35.5 s
+vs 30.4 s capped, back to back, hence nesting only above 144,000); at 300k
+nesting gave 15 iterations and a 146 s fit (5.8 GB peak), vs 36 and 215 s.
+A 12,000-centre dense Cholesky took 36 s (16,000: 76 s, 2.1 GB) on the 2
+shared cores, hence nesting rather than a larger cap.
 
 Product accuracy is relaxed as the residual falls (inexact Krylov, Bouras &
 Fraysse 2005): the FMM tolerance for an Arnoldi step is
@@ -1006,6 +1023,16 @@ def _uniform_subset(points: np.ndarray, count: int) -> np.ndarray:
     return np.sort(best)
 
 
+def _subset_operator(fast, subset, eps):
+    """The same kind of product on ``fast.centres[subset]`` (for a nested coarse level)."""
+    cen = fast.centres[subset]
+    if isinstance(fast, GridSum):  # the grid when it fits its budget, else fmm3dpy
+        return fast_operator(fast.kernel, cen, eps=max(eps, fast.eps), backend="auto")
+    if isinstance(fast, FastSum):
+        return FastSum(fast.kernel, cen, eps=max(eps, fast.eps), workers=fast.workers)
+    return type(fast)(fast.kernel, cen)
+
+
 class TwoLevel:
     """Two-level multiplicative preconditioner for ``Phi + diag(lam)``.
 
@@ -1017,13 +1044,16 @@ class TwoLevel:
     neighbours : int
         k of the tapered near-field matrix.
     coarse_ratio, max_coarse : int
-        Coarse level size ``min(N / coarse_ratio, max_coarse)``.
+        Coarse level size ``N / coarse_ratio``, solved by Cholesky up to
+        ``max_coarse`` centres; above it, capped at ``max_coarse`` when
+        ``nested`` is 0, else solved by nested steps.
     inner : int
         CG steps on the near-field matrix.
     damping : float
         The near-field diagonal phi(0) - phi(R) is multiplied by this (a
-        damped local step after the coarse correction; 1.5 measured best:
-        at N = 8,000 1.0 needs 20 iterations, 1.5 needs 9, 2 needs 10, 3 needs 11).
+        damped local step after the coarse correction).  At N = 8,000 1.0
+        needs 20 iterations, 1.5 needs 9, 2 needs 10, 3 needs 11; at 50,000
+        (grid products) 1.5 needs 38 (a plateau near 1e-4), 2 needs 10.
     exact_below : int
         Up to this N the "coarse" level is all centres: an exact Cholesky
         preconditioner (one iteration).
@@ -1034,10 +1064,25 @@ class TwoLevel:
         1e-2 gave the same counts as 1e-4 (8k: 6 to 1e-5) in 35% less time.
     dense_budget : int
         Bytes allowed for storing the (N, |C|) coarse-to-fine block.
+    nested : int
+        FGMRES steps for a coarse level above ``max_coarse`` (0: cap it at
+        ``max_coarse`` instead).  The steps are preconditioned by a
+        TwoLevel on the coarse centres (same parameters, so recursive).
+    nested_eps : float
+        Tolerance of the products on the coarse centres (nested level).
+    nested_rtol : float
+        Relative residual that stops the nested steps early (0: always
+        ``nested`` steps; 1e-2 gave 30 outer iterations at 100k, vs 12).
+    nested_ratio : float
+        Nest only when ``N > nested_ratio * max_coarse`` (144,000 by
+        default); below it the coarse level is capped.  At 100k nesting
+        cut the count from 16 to 12 but the fit took 35.5 s instead of
+        30.4 s; at 300k it took 146 s (15 iterations) instead of 215 s (36).
     """
 
     def __init__(self, fast: FastSum, lam, neighbours=64, coarse_ratio=8, max_coarse=6000, inner=10,
-                 eps=1e-2, dense_budget=256 * 2**20, select="uniform", exact_below=3000, damping=1.5):
+                 eps=1e-2, dense_budget=256 * 2**20, select="uniform", exact_below=3000, damping=2.0,
+                 nested=8, nested_eps=1e-3, nested_rtol=0.0, nested_ratio=24):
         kernel, x = fast.kernel, fast.centres
         n = len(x)
         self.fast, self.lam, self.inner, self.eps = fast, np.asarray(lam, float), int(inner), eps
@@ -1058,16 +1103,31 @@ class TwoLevel:
         self.near_diag = np.asarray(diag, dtype=float)
         self.radius = radius
         # Coarse level.
-        mc = n if n <= exact_below else min(max(n // coarse_ratio, 1), max_coarse, n)
+        want = max(n // coarse_ratio, 1)
+        self.nested = int(nested) if n > exact_below and want > max_coarse and n > nested_ratio * max_coarse else 0
+        mc = n if n <= exact_below else min(want, n if self.nested else max_coarse, n)
         if select == "random" and mc < n:
             self.coarse = np.sort(np.random.default_rng(0).choice(n, mc, replace=False))
         else:
             self.coarse = _uniform_subset(x, mc)
         xc = x[self.coarse]
-        acc = kernel_matrix(kernel, xc)
-        acc[np.diag_indices(len(xc))] += self.lam[self.coarse]
-        self.factor = sla.cho_factor(acc, lower=True, overwrite_a=True, check_finite=False)
-        del acc
+        self.factor = self.inner_level = None
+        if self.nested:
+            # The coarse system is too big for Cholesky: solve it loosely by a
+            # few FGMRES steps preconditioned by the same scheme (recursively).
+            sub = _subset_operator(fast, self.coarse, nested_eps)
+            self.inner_level = TwoLevel(sub, self.lam[self.coarse], neighbours=neighbours,
+                                        coarse_ratio=coarse_ratio, max_coarse=max_coarse, inner=inner, eps=eps,
+                                        dense_budget=dense_budget, select=select, exact_below=exact_below,
+                                        damping=damping, nested=nested, nested_eps=nested_eps,
+                                        nested_rtol=nested_rtol, nested_ratio=nested_ratio)
+            self._sub, self._sub_lam, self._sub_eps = sub, self.lam[self.coarse], nested_eps
+            self._sub_rtol = float(nested_rtol)
+        else:
+            acc = kernel_matrix(kernel, xc)
+            acc[np.diag_indices(len(xc))] += self.lam[self.coarse]
+            self.factor = sla.cho_factor(acc, lower=True, overwrite_a=True, check_finite=False)
+            del acc
         self.exact = len(self.coarse) == n
         self.block = None
         self.update = None
@@ -1082,8 +1142,11 @@ class TwoLevel:
             "near_nnz": int(self.near.nnz),
             "coarse": len(self.coarse),
             "coarse_update": "exact" if self.exact else ("dense block" if self.block is not None else "fast sum"),
+            "coarse_solve": (f"{self.nested} nested FGMRES steps" if self.nested else "Cholesky"),
             "setup_seconds": self.setup_seconds,
         }
+        if self.inner_level is not None:
+            self.info["inner"] = self.inner_level.info
 
     def _coarse_to_fine(self, zc):
         """(Phi + Lambda)[:, C] z_C."""
@@ -1094,8 +1157,20 @@ class TwoLevel:
         out[self.coarse] += self.lam[self.coarse] * zc
         return out
 
+    def _coarse_solve(self, rc):
+        """z_C ~ (Phi_CC + Lambda_C)^{-1} r_C: Cholesky, or a few nested FGMRES steps."""
+        if self.factor is not None:
+            return sla.cho_solve(self.factor, rc, check_finite=False)
+        sub, lam, e = self._sub, self._sub_lam, self._sub_eps
+
+        def product(v, rel=1.0):
+            return sub.matvec(v, eps=e) + lam * v
+
+        z, *_ = _fgmres(product, rc, self.inner_level, self._sub_rtol, self.nested, self.nested, product, final=False)
+        return z
+
     def __call__(self, r):
-        zc = sla.cho_solve(self.factor, r[self.coarse], check_finite=False)
+        zc = self._coarse_solve(r[self.coarse])
         z = np.zeros_like(r)
         if self.exact:
             z[self.coarse] = zc
@@ -1132,7 +1207,7 @@ def _cg(a, diag, b, steps):
 # --------------------------------------------------------------------------------------
 # FGMRES
 # --------------------------------------------------------------------------------------
-def _fgmres(matvec, b, prec, rtol, max_iterations, restart, true_matvec, bar=None):
+def _fgmres(matvec, b, prec, rtol, max_iterations, restart, true_matvec, bar=None, final=True):
     """Flexible GMRES (right preconditioned), restarted from the true residual.
 
     ``matvec(x, rel)`` may be inexact with relative accuracy ``rel`` (relaxed
@@ -1198,6 +1273,8 @@ def _fgmres(matvec, b, prec, rtol, max_iterations, restart, true_matvec, bar=Non
         y = sla.solve_triangular(H[:j_used, :j_used], g[:j_used], check_finite=False)
         x = x + Z[:j_used].T @ y
         del V, Z
+        if not final:  # one cycle, no true residual (a nested solve)
+            return x, its, est / bn, history
         r = b - true_matvec(x)
         beta = float(np.linalg.norm(r))
         if est <= rtol * bn and beta > rtol * bn and history and history[-1] < 1e-3 * beta / bn:
@@ -1218,7 +1295,7 @@ def fast_memory(n: int, restart: int = 50, eps: float = 1e-6) -> int:
     fmm = _FMM_BYTES_PER_POINT * n * (1.0 if eps <= 1e-6 else 0.6) + 12 * n * 300
     grid = 12 * n * 1600 + min(GRID_BUDGET, 1e4 * n)
     krylov = 2 * (restart + 2) * n * 8
-    precond = 12 * n * 64 + 8 * 6000**2 + 256 * 2**20
+    precond = 12 * n * 64 + 8 * 6000**2 + 256 * 2**20 + (12 * (n // 8) * 1000 if n > 144_000 else 0)
     return int(max(fmm, grid) + krylov + precond)
 
 
