@@ -169,7 +169,19 @@ def _pool():
 
         # fork (not spawn/forkserver): no re-import of the user's __main__.
         _POOL = ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("fork"))
+        import atexit
+
+        atexit.register(_close_pool)
     return _POOL
+
+
+def _close_pool() -> None:
+    """Shut the helper process down at exit, while the modules it needs still exist
+    (otherwise the executor's clean-up runs during interpreter teardown and prints a traceback)."""
+    global _POOL
+    pool, _POOL = _POOL, None
+    if pool is not None:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def default_workers() -> int:
