@@ -63,8 +63,8 @@ def scanner_oriented_normals(points, point_camera, cameras, k: int = 30):
 
 def render(panels, path: Path, views=(("front", (0.0, 0.15, 1.0)), ("underneath", (0.3, -1.0, 0.25))), size=450) -> Path:
     """Meshes in columns, one row per view, the bunny's +y up (offscreen PyVista)."""
-    from o3drbf.io import atomic_path
-    from o3drbf.plotting import _headless, to_pyvista
+    from o3drbf.io.files import atomic_path
+    from o3drbf.pictures import _headless, to_pyvista
 
     _headless()
     import pyvista as pv
@@ -84,7 +84,7 @@ def render(panels, path: Path, views=(("front", (0.0, 0.15, 1.0)), ("underneath"
 
 
 def evaluate(mesh, reference) -> dict:
-    from o3drbf.metrics import chamfer, mesh_report, normal_consistency
+    from o3drbf.mesh.metrics import chamfer, mesh_report, normal_consistency
 
     rep = mesh_report(mesh)
     ch = chamfer(mesh, reference, n_samples=100_000, seed=0)
@@ -126,8 +126,8 @@ def main(argv=None) -> int:
     import open3d as o3d
 
     from o3drbf import reconstruct
-    from o3drbf.cameras import load_cameras
-    from o3drbf.peers import poisson
+    from o3drbf.cameras.model import load_cameras
+    from o3drbf.evaluation.peers import poisson
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -32,11 +32,11 @@ def main(argv=None) -> int:
     import numpy as np
 
     import o3drbf
-    from o3drbf.api import DEFAULTS
+    from o3drbf.pipeline import DEFAULTS
     from o3drbf.extract import extract_mesh
-    from o3drbf.metrics import chamfer, mesh_report
-    from o3drbf.peers import poisson
-    from o3drbf.shapes import Torus
+    from o3drbf.mesh.metrics import chamfer, mesh_report
+    from o3drbf.evaluation.peers import poisson
+    from o3drbf.synthetic.shapes import Torus
 
     torus = Torus(0.6, 0.25)
     points, normals = torus.sample(args.points, noise=0.005, seed=1)

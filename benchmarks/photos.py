@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from o3drbf.photos import picture, run_photos
+from o3drbf.photo.pipeline import picture, run_photos
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 TEMPLE = SHARED / "middlebury_templeSparseRing"
@@ -76,7 +76,7 @@ def main(argv=None) -> int:
     print(f"total {total:.1f} s (target < {TARGET_SECONDS:.0f} s: {'met' if ok_time else 'MISSED'}); "
           f"IoU > {TARGET_IOU} in every image: {'yes' if ok_iou else 'NO'}")
     if args.out:
-        from o3drbf.io import write_mesh
+        from o3drbf.io.files import write_mesh
 
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)

@@ -37,7 +37,7 @@ def _set_threads(n: int) -> None:
 def problem(n, seed=0):
     import numpy as np
 
-    from o3drbf.shapes import Torus
+    from o3drbf.synthetic.shapes import Torus
 
     ns = int(round(n / 1.1))
     ne = n - ns
@@ -53,7 +53,7 @@ def band_targets(grid: int, width: float = 1.5):
     """Nodes of a grid^3 lattice on [-1.1, 1.1]^3 within ``width`` cells of the torus."""
     import numpy as np
 
-    from o3drbf.shapes import Torus
+    from o3drbf.synthetic.shapes import Torus
 
     t = Torus()
     ax = np.linspace(-1.1, 1.1, grid)
@@ -87,10 +87,10 @@ def run_one(args) -> dict:
 
     import numpy as np
 
-    from o3drbf import fast
-    from o3drbf.kernels import MultiOrder
-    from o3drbf.solve import available_memory, solve
-    from o3drbf.sums import kernel_sum
+    from o3drbf.solvers import fast
+    from o3drbf.rbf.kernels import MultiOrder
+    from o3drbf.solvers import available_memory, solve
+    from o3drbf.rbf.sums import kernel_sum
 
     n = args.n
     kernel = MultiOrder(args.delta, args.tau)

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
-from o3drbf.cameras import Camera, load_range_scans
-from o3drbf.sampling import poisson_disc
-from o3drbf.shapes import TorusStack
-from o3drbf.visibility import exterior_constraints, visibility
+from o3drbf.cameras.model import Camera, load_range_scans
+from o3drbf.prep.sampling import poisson_disc
+from o3drbf.synthetic.shapes import TorusStack
+from o3drbf.constraints.visibility import exterior_constraints, visibility
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 

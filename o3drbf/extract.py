@@ -15,7 +15,8 @@ import math
 
 import numpy as np
 
-from ._validate import check_number
+from o3drbf.progress import progress_bar
+from o3drbf.validation import check_number
 
 __all__ = ["extract_mesh", "evaluate_grid", "grid_for"]
 
@@ -99,7 +100,7 @@ def evaluate_grid(
         while (cells % (2 ** (levels + 1)) == 0).all() and cells.max() // 2 ** (levels + 1) >= 16:
             levels += 1
     stride = 2**levels
-    bar = _bar(progress, int(np.prod(shape)) if not band else None, "evaluating f")
+    bar = progress_bar(progress, total=int(np.prod(shape)) if not band else None, desc="evaluating f", unit="pt", unit_scale=True)
     coarse_shape = tuple(int(c) // stride + 1 for c in cells)
     idx = np.indices(coarse_shape).reshape(3, -1) * stride
     vals = func(_grid_points(origin, spacing, idx)).reshape(coarse_shape)
@@ -179,14 +180,6 @@ def _upsample(v):
         res[tuple(odd)] = 0.5 * (out[tuple(lo)] + out[tuple(hi)])
         out = res
     return out
-
-
-def _bar(enabled, total, desc):
-    if not enabled:
-        return None
-    from tqdm.auto import tqdm
-
-    return tqdm(total=total, desc=desc, unit="pt", unit_scale=True, leave=False)
 
 
 def _tick(bar, n):

@@ -2,7 +2,7 @@
 
 f > 0 inside, f = 0 on the surface, f < 0 outside.  Points are given and
 returned in the data's own coordinates; internally f lives in the
-normalized 2x2x2 box (:class:`~o3drbf.normalize.Normalization`).
+normalized 2x2x2 box (:class:`~o3drbf.prep.normalize.Normalization`).
 """
 
 from __future__ import annotations
@@ -14,11 +14,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ._validate import as_points
-from .io import atomic_path
-from .kernels import Kernel, make_kernel
-from .normalize import Normalization
-from .sums import DEFAULT_CHUNK_BYTES, kernel_sum, polynomial_basis
+from o3drbf.validation import as_points
+from o3drbf.io.files import atomic_path
+from o3drbf.rbf.kernels import Kernel, make_kernel
+from o3drbf.prep.normalize import Normalization
+from o3drbf.rbf.sums import DEFAULT_CHUNK_BYTES, kernel_sum, polynomial_basis
 
 __all__ = ["ImplicitSurface"]
 
@@ -81,7 +81,7 @@ class ImplicitSurface:
         return out + q @ self.poly
 
     def _table(self):
-        from . import _direct
+        from o3drbf.rbf import compiled as _direct
 
         if not _direct.supports_table(self.kernel):
             return None

@@ -14,12 +14,12 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import o3drbf  # noqa: E402
-from o3drbf import io  # noqa: E402
-from o3drbf.cli import summary  # noqa: E402
-from o3drbf.metrics import chamfer, mesh_report  # noqa: E402
-from o3drbf.peers import poisson  # noqa: E402
-from o3drbf.plotting import side_by_side  # noqa: E402
-from o3drbf.shapes import TorusStack  # noqa: E402
+from o3drbf.io import files as io  # noqa: E402
+from o3drbf.cli.commands import summary  # noqa: E402
+from o3drbf.mesh.metrics import chamfer, mesh_report  # noqa: E402
+from o3drbf.evaluation.peers import poisson  # noqa: E402
+from o3drbf.pictures import side_by_side  # noqa: E402
+from o3drbf.synthetic.shapes import TorusStack  # noqa: E402
 
 
 def main(argv=None) -> int:

@@ -16,8 +16,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from o3drbf.io import write_points  # noqa: E402
-from o3drbf.shapes import Sphere, Torus, TorusStack, cube_corner  # noqa: E402
+from o3drbf.io.files import write_points  # noqa: E402
+from o3drbf.synthetic.shapes import Sphere, Torus, TorusStack, cube_corner  # noqa: E402
 
 SAMPLES = {
     "torus.ply": lambda: Torus(0.6, 0.25).sample(8000, noise=0.009, seed=1),

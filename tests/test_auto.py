@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 
 import o3drbf
-from o3drbf.auto import AutoParameters, PAPER_PARAMETERS, choose_parameters, estimate_noise, parameters_from
-from o3drbf.cli import build_parser, main
-from o3drbf.io import write_points
-from o3drbf.kernels import MultiOrder
-from o3drbf.metrics import chamfer
-from o3drbf.sampling import mean_spacing
-from o3drbf.shapes import Sphere, Torus
+from o3drbf.constraints.parameters import AutoParameters, PAPER_PARAMETERS, choose_parameters, estimate_noise, parameters_from
+from o3drbf.cli.commands import build_parser, main
+from o3drbf.io.files import write_points
+from o3drbf.rbf.kernels import MultiOrder
+from o3drbf.mesh.metrics import chamfer
+from o3drbf.prep.sampling import mean_spacing
+from o3drbf.synthetic.shapes import Sphere, Torus
 
 
 @pytest.mark.parametrize("shape", [Sphere(1.0), Torus(0.7, 0.25)], ids=["sphere", "torus"])
@@ -67,7 +67,7 @@ def test_rule_is_monotone_in_noise_and_spacing():
 
 @pytest.fixture(scope="module")
 def noisy_torus():
-    # Not the calibration torus (0.7, 0.25) of o3drbf.auto's rule.
+    # Not the calibration torus (0.7, 0.25) of o3drbf.constraints.parameters's rule.
     torus = Torus(0.6, 0.2)
     p, n = torus.sample(6000, noise=0.02, seed=3)
     truth, _ = torus.sample(40000, seed=11)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from o3drbf.cameras import load_cameras, load_range_scans
+from o3drbf.cameras.model import load_cameras, load_range_scans
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 BUNNY = DATA / "stanford_bunny"

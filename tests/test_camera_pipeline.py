@@ -17,12 +17,12 @@ import open3d as o3d
 import pytest
 
 from o3drbf import reconstruct
-from o3drbf.cameras import Camera, save_cameras_json
-from o3drbf.cli import main
-from o3drbf.io import write_points
-from o3drbf.metrics import mesh_report
-from o3drbf.scans import range_scans, write_scan_json
-from o3drbf.shapes import Torus
+from o3drbf.cameras.model import Camera, save_cameras_json
+from o3drbf.cli.commands import main
+from o3drbf.io.files import write_points
+from o3drbf.mesh.metrics import mesh_report
+from o3drbf.synthetic.scans import range_scans, write_scan_json
+from o3drbf.synthetic.shapes import Torus
 
 TORUS = Torus(0.7, 0.25)
 NOISE = 0.003  # standard deviation along the rays (tube radius 0.25)

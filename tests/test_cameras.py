@@ -1,4 +1,4 @@
-"""Camera model and camera file formats (o3drbf.cameras)."""
+"""Camera model and camera file formats (o3drbf.cameras.model)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from o3drbf.cameras import Camera, load_cameras, load_range_scans, quaternion_to_matrix, save_cameras_json
+from o3drbf.cameras.model import Camera, load_cameras, load_range_scans, quaternion_to_matrix, save_cameras_json
 
 # K, R (90 degrees about z), t chosen so projection is easy by hand.
 K = np.array([[100.0, 0.0, 50.0], [0.0, 200.0, 40.0], [0.0, 0.0, 1.0]])

@@ -8,10 +8,10 @@ six 160x120 cameras.
 import numpy as np
 import pytest
 
-from o3drbf import carve as cv
-from o3drbf.cameras import Camera
-from o3drbf.render import render_views
-from o3drbf.scans import camera_ring
+from o3drbf.photo import carve as cv
+from o3drbf.cameras.model import Camera
+from o3drbf.synthetic.render import render_views
+from o3drbf.synthetic.scans import camera_ring
 
 RES = 32
 BOX = np.array([[-1.25] * 3, [1.25] * 3])

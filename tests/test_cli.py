@@ -7,9 +7,9 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from o3drbf.cli import main
-from o3drbf.io import write_points
-from o3drbf.shapes import Torus
+from o3drbf.cli.commands import main
+from o3drbf.io.files import write_points
+from o3drbf.synthetic.shapes import Torus
 
 
 @pytest.fixture(scope="module")
@@ -127,8 +127,8 @@ def test_coloured_input_gives_a_coloured_mesh(tmp_path):
     """A point cloud with colours gives a mesh coloured from them (colour = a linear function of position)."""
     import open3d as o3d
 
-    from o3drbf.cli import main
-    from o3drbf.shapes import Sphere
+    from o3drbf.cli.commands import main
+    from o3drbf.synthetic.shapes import Sphere
 
     pts, nrm = Sphere(1.0).sample(3000, seed=4)
     truth = lambda x: 0.5 + 0.45 * x  # noqa: E731, colour channel = position

@@ -8,9 +8,9 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from o3drbf.api import reconstruct
-from o3drbf.cameras import Camera
-from o3drbf.color import (
+from o3drbf.pipeline import reconstruct
+from o3drbf.cameras.model import Camera
+from o3drbf.mesh.color import (
     ColorResult,
     color_mesh,
     colors_from_images,
@@ -18,10 +18,10 @@ from o3drbf.color import (
     subdivide_for_images,
     vertex_normals,
 )
-from o3drbf.io import write_mesh
-from o3drbf.render import render_views
-from o3drbf.scans import camera_ring
-from o3drbf.shapes import Sphere, Torus
+from o3drbf.io.files import write_mesh
+from o3drbf.synthetic.render import render_views
+from o3drbf.synthetic.scans import camera_ring
+from o3drbf.synthetic.shapes import Sphere, Torus
 
 # A smooth colour field on the torus: c(x) = 0.5 + 0.35 (sin 3x, cos 3y, sin(3z + x)).
 FREQ = 3.0

@@ -1,4 +1,4 @@
-"""o3drbf.compare: several methods on one sampled torus, tables, picture, CLI entry."""
+"""o3drbf.evaluation.compare: several methods on one sampled torus, tables, picture, CLI entry."""
 
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ import pytest
 
 o3d = pytest.importorskip("open3d")
 
-from o3drbf import compare as C  # noqa: E402
-from o3drbf.cameras import Camera  # noqa: E402
-from o3drbf.shapes import Sphere, Torus  # noqa: E402
+from o3drbf.evaluation import compare as C  # noqa: E402
+from o3drbf.cameras.model import Camera  # noqa: E402
+from o3drbf.synthetic.shapes import Sphere, Torus  # noqa: E402
 
 R_MAJOR, R_TUBE = 0.6, 0.25
 METHODS = ("multiorder", "poisson", "bpa")

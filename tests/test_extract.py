@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from o3drbf.extract import evaluate_grid, extract_mesh, grid_for
-from o3drbf.kernels import MultiOrder
-from o3drbf.normalize import Normalization
-from o3drbf.shapes import Torus
+from o3drbf.rbf.kernels import MultiOrder
+from o3drbf.prep.normalize import Normalization
+from o3drbf.synthetic.shapes import Torus
 from o3drbf.surface import ImplicitSurface
 
 
@@ -102,7 +102,7 @@ def test_rbf_surface_extraction_chunked_memory_path():
     # a real ImplicitSurface evaluated through the NumPy reference and the compiled path give the same mesh
     rng = np.random.default_rng(0)
     p, n = Torus(0.6, 0.25).sample(600, seed=1)
-    from o3drbf.solve import solve
+    from o3drbf.solvers import solve
 
     x = np.vstack([p, p + 0.08 * n])
     y = np.r_[np.zeros(600), -np.ones(600)]

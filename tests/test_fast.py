@@ -1,4 +1,4 @@
-"""Fast products, fast solve and fast evaluator (o3drbf.fast) against the dense reference."""
+"""Fast products, fast solve and fast evaluator (o3drbf.solvers.fast) against the dense reference."""
 
 from __future__ import annotations
 
@@ -9,11 +9,11 @@ import pytest
 
 pytest.importorskip("fmm3dpy")
 
-from o3drbf import fast  # noqa: E402
-from o3drbf.kernels import Gaussian, MultiOrder, ThinPlate  # noqa: E402
-from o3drbf.shapes import Torus  # noqa: E402
-from o3drbf.solve import ConvergenceWarning, solve  # noqa: E402
-from o3drbf.sums import kernel_matrix, kernel_sum  # noqa: E402
+from o3drbf.solvers import fast  # noqa: E402
+from o3drbf.rbf.kernels import Gaussian, MultiOrder, ThinPlate  # noqa: E402
+from o3drbf.synthetic.shapes import Torus  # noqa: E402
+from o3drbf.solvers import ConvergenceWarning, solve  # noqa: E402
+from o3drbf.rbf.sums import kernel_matrix, kernel_sum  # noqa: E402
 
 
 def torus_problem(n, seed=0, offset=0.05):

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from scipy.integrate import quad
 
-from o3drbf.kernels import KERNELS, Gaussian, MultiOrder, ThinPlate, make_kernel
-from o3drbf.sums import kernel_matrix, kernel_sum
+from o3drbf.rbf.kernels import KERNELS, Gaussian, MultiOrder, ThinPlate, make_kernel
+from o3drbf.rbf.sums import kernel_matrix, kernel_sum
 
 # (delta, tau): real, confluent (4 tau^2 delta^2 = 1), near-confluent, complex regimes
 CASES = [(10.0, 0.01), (3.1623, 0.01), (5.0, 0.025), (20.0, 0.025), (40.0, 0.0125), (20.0, 0.0249999), (40.0, 0.025)]
@@ -152,7 +152,7 @@ def test_make_kernel_and_errors():
 @pytest.mark.parametrize("delta,tau", CASES)
 def test_tabulated_kernel_matches_the_exact_one(delta, tau, rng):
     """The meshing tables: phi within 1e-8 pointwise, sums within 1e-8, gradients within 1e-5."""
-    from o3drbf._direct import KernelTable, _table_eval
+    from o3drbf.rbf.compiled import KernelTable, _table_eval
 
     k = MultiOrder(delta, tau)
     table = KernelTable(k)

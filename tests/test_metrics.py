@@ -1,4 +1,4 @@
-"""Tests for o3drbf.metrics: every number against an analytic truth."""
+"""Tests for o3drbf.mesh.metrics: every number against an analytic truth."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from o3drbf import metrics
-from o3drbf.metrics import (
+from o3drbf.mesh import metrics
+from o3drbf.mesh.metrics import (
     average_curvature,
     chamfer,
     f_score,

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from o3drbf.cameras import load_cameras
+from o3drbf.cameras.model import load_cameras
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 TEMPLE = DATA / "middlebury_templeSparseRing"

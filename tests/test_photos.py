@@ -8,9 +8,9 @@ silhouettes.
 import numpy as np
 import pytest
 
-from o3drbf.cli import main
-from o3drbf.metrics import chamfer
-from o3drbf.photos import readme_bounds, run_photos
+from o3drbf.cli.commands import main
+from o3drbf.mesh.metrics import chamfer
+from o3drbf.photo.pipeline import readme_bounds, run_photos
 
 from test_carve import BOX, colour_of, photos  # noqa: F401  (fixture)
 

@@ -1,11 +1,11 @@
-"""Outlier removal (o3drbf.preprocess)."""
+"""Outlier removal (o3drbf.prep.outliers)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from o3drbf.preprocess import largest_components, statistical_outliers, voxel_components
+from o3drbf.prep.outliers import largest_components, statistical_outliers, voxel_components
 
 
 def clusters(seed=0):

@@ -25,9 +25,9 @@ if not DATA.is_dir():
 import open3d as o3d  # noqa: E402
 
 from o3drbf import reconstruct  # noqa: E402
-from o3drbf.cameras import load_cameras  # noqa: E402
-from o3drbf.metrics import chamfer, mesh_report, normal_consistency  # noqa: E402
-from o3drbf.peers import poisson  # noqa: E402
+from o3drbf.cameras.model import load_cameras  # noqa: E402
+from o3drbf.mesh.metrics import chamfer, mesh_report, normal_consistency  # noqa: E402
+from o3drbf.evaluation.peers import poisson  # noqa: E402
 
 pytestmark = pytest.mark.shared_data
 
@@ -148,7 +148,7 @@ def test_fig8_synthetic_scans_give_a_closed_manifold_mesh(zipper):
     (Euler characteristic 2); after extract._clean's vertex welding one edge
     is non-manifold, the mesh is not closed and V - E + F = 3.
     """
-    from o3drbf.scans import range_scans
+    from o3drbf.synthetic.scans import range_scans
 
     points, owner, cams = range_scans(zipper, n_views=3, elevation=0.0, up=(0.0, 1.0, 0.0), width=200, height=150, seed=0)
     rec = reconstruct(points, cameras=cams, point_camera=owner, surface_count=2168, exterior_ratio=193 / 2168, resolution=128, seed=1)

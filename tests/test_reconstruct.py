@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 import o3drbf
-from o3drbf.metrics import average_curvature, fitness_error
-from o3drbf.shapes import Sphere, Torus
+from o3drbf.mesh.metrics import average_curvature, fitness_error
+from o3drbf.synthetic.shapes import Sphere, Torus
 
 
 def test_sphere_radius_recovered_within_one_percent():

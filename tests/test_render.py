@@ -8,8 +8,8 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from o3drbf.cameras import Camera
-from o3drbf.render import View, pixel_rays, render_views, save_images
+from o3drbf.cameras.model import Camera
+from o3drbf.synthetic.render import View, pixel_rays, render_views, save_images
 
 RES = 60  # Open3D sphere resolution: latitude step pi / RES
 

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from o3drbf.sampling import fibonacci_sphere, mean_spacing, poisson_disc
-from o3drbf.shapes import Cube, Sphere, Torus, TorusStack, cube_corner
+from o3drbf.prep.sampling import fibonacci_sphere, mean_spacing, poisson_disc
+from o3drbf.synthetic.shapes import Cube, Sphere, Torus, TorusStack, cube_corner
 
 
 def test_mean_spacing_of_a_grid_is_its_step():

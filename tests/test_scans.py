@@ -1,4 +1,4 @@
-"""Synthetic range scans and voxel shells (o3drbf.scans)."""
+"""Synthetic range scans and voxel shells (o3drbf.synthetic.scans)."""
 
 from __future__ import annotations
 
@@ -6,10 +6,10 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from o3drbf.cameras import load_cameras
-from o3drbf.preprocess import voxel_components
-from o3drbf.scans import range_scans, voxel_shell, write_scan_json
-from o3drbf.shapes import Torus
+from o3drbf.cameras.model import load_cameras
+from o3drbf.prep.outliers import voxel_components
+from o3drbf.synthetic.scans import range_scans, voxel_shell, write_scan_json
+from o3drbf.synthetic.shapes import Torus
 
 
 def sphere_mesh():

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from o3drbf.kernels import Gaussian, MultiOrder, ThinPlate
-from o3drbf.solve import ConvergenceWarning, solve
-from o3drbf.sums import kernel_matrix, kernel_sum, polynomial_basis
+from o3drbf.rbf.kernels import Gaussian, MultiOrder, ThinPlate
+from o3drbf.solvers import ConvergenceWarning, solve
+from o3drbf.rbf.sums import kernel_matrix, kernel_sum, polynomial_basis
 
 KERNELS = [MultiOrder(10, 0.01), MultiOrder(40, 0.025), Gaussian(0.3), ThinPlate()]
 

@@ -5,9 +5,9 @@ import open3d as o3d
 import pytest
 
 import o3drbf
-from o3drbf.cameras import Camera
-from o3drbf.shapes import Sphere, Torus
-from o3drbf.sources import points_from_depth, points_from_voxels, read_voxel_grid
+from o3drbf.cameras.model import Camera
+from o3drbf.synthetic.shapes import Sphere, Torus
+from o3drbf.io.sources import points_from_depth, points_from_voxels, read_voxel_grid
 
 
 def sphere_depth(camera, radius=1.0):

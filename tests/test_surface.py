@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from o3drbf.kernels import Gaussian, MultiOrder, ThinPlate
-from o3drbf.normalize import Normalization
-from o3drbf.solve import solve
+from o3drbf.rbf.kernels import Gaussian, MultiOrder, ThinPlate
+from o3drbf.prep.normalize import Normalization
+from o3drbf.solvers import solve
 from o3drbf.surface import ImplicitSurface
 
 

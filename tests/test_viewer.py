@@ -16,16 +16,16 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from o3drbf.cli import main
-from o3drbf.scans import range_scans, write_scan_json
-from o3drbf.shapes import Torus
+from o3drbf.cli.commands import main
+from o3drbf.synthetic.scans import range_scans, write_scan_json
+from o3drbf.synthetic.shapes import Torus
 
 pv = pytest.importorskip("pyvista")
 
-from viewers.app import COLORS, SLIDERS, ViewerApp, parse_script  # noqa: E402
-from viewers.geometry import camera_frusta, view_up, wind_like_normals  # noqa: E402
-from viewers.inputs import load_view_input, model_constraints  # noqa: E402
-from viewers.refit import FitParams, Refitter, pick_values  # noqa: E402
+from o3drbf.viewers.app import COLORS, SLIDERS, ViewerApp, parse_script  # noqa: E402
+from o3drbf.viewers.geometry import camera_frusta, view_up, wind_like_normals  # noqa: E402
+from o3drbf.viewers.inputs import load_view_input, model_constraints  # noqa: E402
+from o3drbf.viewers.refit import FitParams, Refitter, pick_values  # noqa: E402
 
 SMALL = ["--resolution", "24", "--surface-count", "300", "--poisson-depth", "6", "--window-size", "800", "400"]
 PARAMS = FitParams(resolution=24, surface_count=300)
@@ -325,13 +325,13 @@ def test_help_and_import_need_no_display_or_pyvista():
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
     proc = subprocess.run([sys.executable, "-m", "o3drbf.cli", "view", "--help"], capture_output=True, text=True, env=env, timeout=60)
     assert proc.returncode == 0 and "--screenshot" in proc.stdout and "--script" not in proc.stdout
-    code = "import sys, o3drbf, o3drbf.cli; o3drbf.cli.build_parser(); import viewers.app; print('pyvista' in sys.modules)"
+    code = "import sys, o3drbf, o3drbf.cli.commands; o3drbf.cli.commands.build_parser(); import o3drbf.viewers.app; print('pyvista' in sys.modules)"
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60)
     assert proc.returncode == 0 and proc.stdout.strip() == "False", proc.stderr
 
 
 def test_sample_scan_for_the_readme_picture(tmp_path):
-    from viewers.sample_scan import main as sample_main
+    from o3drbf.viewers.sample_scan import main as sample_main
 
     out = tmp_path / "tori.json"
     assert sample_main([str(out), "--views", "2"]) == 0
@@ -339,7 +339,7 @@ def test_sample_scan_for_the_readme_picture(tmp_path):
     assert len(data.cameras) == 2 and len(data.points) > 1000
     assert set(np.unique(data.point_camera)) == {0, 1}
     # Every point lies on one of the three tori.
-    from o3drbf.shapes import TorusStack
+    from o3drbf.synthetic.shapes import TorusStack
 
     assert np.abs(TorusStack(3).signed_distance(data.points)).max() < 0.05
     assert sample_main([str(tmp_path / "tori.txt")]) == 2

@@ -1,13 +1,13 @@
-"""Visibility by ray casting and exterior constraints toward the cameras (o3drbf.visibility)."""
+"""Visibility by ray casting and exterior constraints toward the cameras (o3drbf.constraints.visibility)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from o3drbf.cameras import Camera
-from o3drbf.shapes import Sphere, Torus, TorusStack
-from o3drbf.visibility import exterior_constraints, visibility
+from o3drbf.cameras.model import Camera
+from o3drbf.synthetic.shapes import Sphere, Torus, TorusStack
+from o3drbf.constraints.visibility import exterior_constraints, visibility
 
 
 def ring(n=8, distance=3.0, elevation=20.0):

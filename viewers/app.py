@@ -9,7 +9,7 @@ iso-surface f = level.  Open3D Poisson (unless ``--no-poisson``): screened
 Poisson on the same points, its camera linked to the o3drbf panel's.
 
 lambda/delta/tau refit, level/resolution only re-extract.  Jobs run on a
-worker thread (:mod:`viewers.refit`), polled by a window timer, so the window
+worker thread (:mod:`o3drbf.viewers.refit`), polled by a window timer, so the window
 stays live and shows the progress.  The first fit chooses delta, tau and
 lambda from the data (``--auto``, as ``o3drbf reconstruct``); the sliders then
 show the values used.
@@ -37,9 +37,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .geometry import camera_frusta, view_direction, view_up, wind_like_normals
-from .inputs import ViewInput, load_view_input, model_constraints
-from .refit import FitParams, FitResult, Refitter, pick_values
+from o3drbf.viewers.geometry import camera_frusta, view_direction, view_up, wind_like_normals
+from o3drbf.viewers.inputs import ViewInput, load_view_input, model_constraints
+from o3drbf.viewers.refit import FitParams, FitResult, Refitter, pick_values
 
 __all__ = ["add_view_arguments", "main_view", "ViewerApp", "COLORS", "LAYERS", "SLIDERS", "parse_script"]
 
@@ -88,7 +88,7 @@ _POLL_MS = 100
 
 def add_view_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The ``o3drbf view`` arguments (no PyVista import here)."""
-    from o3drbf.api import DEFAULTS
+    from o3drbf.pipeline import DEFAULTS
 
     parser.add_argument(
         "input",
@@ -129,7 +129,7 @@ def add_view_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPars
 
 
 def _params_from_args(args) -> FitParams:
-    from o3drbf._validate import check_number
+    from o3drbf.validation import check_number
 
     def opt(name, value, **kw):
         return None if value is None else check_number(name, value, **kw)
@@ -148,7 +148,7 @@ def _params_from_args(args) -> FitParams:
 
 
 def _check_png(path: str, inputs) -> Path:
-    from o3drbf.io import check_output
+    from o3drbf.io.files import check_output
 
     return check_output(path, inputs=inputs, formats=(".png",))
 
@@ -223,7 +223,7 @@ def parse_script(text: str) -> list[tuple]:
 
 
 def _headless() -> None:
-    from o3drbf.plotting import _headless as headless
+    from o3drbf.pictures import _headless as headless
 
     headless()
 
@@ -469,7 +469,7 @@ class ViewerApp:
     @staticmethod
     def _slider_values(params: FitParams) -> dict[str, float]:
         """Slider positions for ``params`` (values still to be chosen by the fit show the paper's)."""
-        from o3drbf.api import DEFAULTS
+        from o3drbf.pipeline import DEFAULTS
 
         lam = DEFAULTS["lambda_surface"] if params.lambda_surface is None else params.lambda_surface
         return {
@@ -569,7 +569,7 @@ class ViewerApp:
 
     def save_mesh(self, path: str | os.PathLike | None = None) -> Path | None:
         """Write the current iso-surface (default ``PREFIX_mesh.ply``); never over an input."""
-        from o3drbf.io import check_output, write_mesh
+        from o3drbf.io.files import check_output, write_mesh
 
         if self.result is None or self.result.mesh is None:
             self._say("no mesh to save yet")
@@ -582,7 +582,7 @@ class ViewerApp:
 
     def save_screenshot(self, path: str | os.PathLike | None = None) -> Path:
         """Write the window as a PNG (default ``PREFIX.png``), atomically."""
-        from o3drbf.io import atomic_path
+        from o3drbf.io.files import atomic_path
 
         out = _check_png(str(path or f"{self.save_prefix}.png"), [self.data.source])
         self._render()
@@ -615,11 +615,11 @@ class ViewerApp:
         self._update_status()
 
     def _compute_poisson(self):
-        from o3drbf.peers import poisson
+        from o3drbf.evaluation.peers import poisson
 
         normals = self.data.normals
         if normals is None:
-            from o3drbf.compare import open3d_normals
+            from o3drbf.evaluation.compare import open3d_normals
 
             normals = open3d_normals(self.data.points, self.data.cameras, self.data.point_camera)
         return poisson(self.data.points, normals, depth=self.poisson_depth)

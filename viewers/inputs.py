@@ -95,7 +95,7 @@ def load_view_input(path: str, cameras: str | None = None) -> ViewInput:
     ValueError
         Unreadable input, cameras given twice, cameras for a saved model.
     """
-    from o3drbf.cli import _read_input
+    from o3drbf.cli.commands import _read_input
 
     p = Path(path)
     if not p.exists():
@@ -110,7 +110,7 @@ def load_view_input(path: str, cameras: str | None = None) -> ViewInput:
     if cameras:
         if cams is not None:
             raise ValueError(f"{p} already holds cameras; drop --cameras")
-        from o3drbf.cameras import load_cameras
+        from o3drbf.cameras.model import load_cameras
 
         cams = load_cameras(cameras)
         if len(cams) == 0:
@@ -118,7 +118,7 @@ def load_view_input(path: str, cameras: str | None = None) -> ViewInput:
     points = np.asarray(points, dtype=float)
     estimated = False
     if normals is None and cams is None:
-        from o3drbf.api import estimate_normals
+        from o3drbf.pipeline import estimate_normals
 
         normals = estimate_normals(points)
         estimated = True

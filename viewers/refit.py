@@ -98,7 +98,7 @@ class _Status:
 
 
 def _split_constraints(constraints) -> dict:
-    from o3drbf.constraints import EXTERIOR, INTERIOR, SPHERE, SURFACE
+    from o3drbf.constraints.core import EXTERIOR, INTERIOR, SPHERE, SURFACE
 
     kind = constraints.kind
     return {
@@ -131,10 +131,10 @@ def run_extract(surface, params: FitParams):
 
 
 def run_fit(data, params: FitParams, status=None) -> FitResult:
-    """Fit the implicit function to ``data`` (a :class:`~viewers.inputs.ViewInput`) and mesh it."""
+    """Fit the implicit function to ``data`` (a :class:`~o3drbf.viewers.inputs.ViewInput`) and mesh it."""
     import inspect
 
-    from o3drbf.api import reconstruct
+    from o3drbf.pipeline import reconstruct
 
     t0 = time.perf_counter()
     if status is not None:

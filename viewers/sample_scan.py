@@ -1,9 +1,9 @@
 """Write a synthetic scan with cameras for ``o3drbf view`` (the README picture).
 
-    python -m viewers.sample_scan OUT.json [--views 3] [--noise 0.003]
+    python -m o3drbf.viewers.sample_scan OUT.json [--views 3] [--noise 0.003]
 
 Three tori stacked along z (the paper's 'towers', idealized) are ray-cast
-from cameras on a ring (:func:`o3drbf.scans.range_scans`); the points, the
+from cameras on a ring (:func:`o3drbf.synthetic.scans.range_scans`); the points, the
 cameras and which camera saw each point go into one scan JSON that
 ``o3drbf view`` and ``o3drbf reconstruct`` read.
 """
@@ -18,10 +18,10 @@ __all__ = ["tori_stack_mesh", "write_sample_scan"]
 
 
 def tori_stack_mesh(count: int = 3, resolution: int = 64):
-    """An Open3D mesh of :class:`o3drbf.shapes.TorusStack` (``count`` tori)."""
+    """An Open3D mesh of :class:`o3drbf.synthetic.shapes.TorusStack` (``count`` tori)."""
     import open3d as o3d
 
-    from o3drbf.shapes import TorusStack
+    from o3drbf.synthetic.shapes import TorusStack
 
     mesh = o3d.geometry.TriangleMesh()
     for torus in TorusStack(count).tori:
@@ -37,7 +37,7 @@ def write_sample_scan(path: str | Path, views: int = 3, noise: float = 0.003, wi
     -------
     Path
     """
-    from o3drbf.scans import range_scans, write_scan_json
+    from o3drbf.synthetic.scans import range_scans, write_scan_json
 
     path = Path(path)
     if path.suffix.lower() != ".json":
@@ -48,7 +48,7 @@ def write_sample_scan(path: str | Path, views: int = 3, noise: float = 0.003, wi
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m viewers.sample_scan", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(prog="python -m o3drbf.viewers.sample_scan", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("out", help="output scan .json")
     parser.add_argument("--views", type=int, default=3, help="cameras on the ring (default %(default)s, as in the paper)")
     parser.add_argument("--noise", type=float, default=0.003, help="noise along the rays, data units (default %(default)s)")

@@ -5,7 +5,7 @@ reconstructed with the multi-order basis and lambda (surface smoothing)
 0, 0.001, 0.03 and 2.0: lambda 0 interpolates and keeps the sharp edges,
 larger lambda rounds them, the largest gives a blob.
 
-Here: ``o3drbf.shapes.cube_corner`` (points and normals on the three faces
+Here: ``o3drbf.synthetic.shapes.cube_corner`` (points and normals on the three faces
 x, y, z = +0.5 a camera at (1, 1, 1) sees), the paper's delta 10 and tau
 0.01.  For each lambda: fitness error (input points to the mesh), average
 curvature, triangles and whether the mesh is closed; a 4-panel PNG and the
@@ -43,10 +43,10 @@ def main(argv=None) -> int:
     import numpy as np
 
     from o3drbf import reconstruct
-    from o3drbf.io import write_mesh
-    from o3drbf.kernels import MultiOrder
-    from o3drbf.metrics import average_curvature, fitness_error, mesh_report
-    from o3drbf.shapes import cube_corner
+    from o3drbf.io.files import write_mesh
+    from o3drbf.rbf.kernels import MultiOrder
+    from o3drbf.mesh.metrics import average_curvature, fitness_error, mesh_report
+    from o3drbf.synthetic.shapes import cube_corner
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -84,7 +84,7 @@ def main(argv=None) -> int:
     print("(data units: the cube has side 1; fitness error = distance from the input points to the mesh)")
 
     try:
-        from o3drbf.plotting import side_by_side
+        from o3drbf.pictures import side_by_side
 
         png = side_by_side(panels, out / "fig2_cube_corner.png", window_size=(1800, 500), points=np.asarray(points), view=(1.0, 1.0, 1.0), viewup=(0.0, 0.0, 1.0))
         picture = str(png)

@@ -42,8 +42,8 @@ def _surface_count(n_total: int) -> int:
 
 def plot(times, path: Path) -> str:
     """Solve time vs N, one line per basis (PyVista Chart2D, offscreen)."""
-    from o3drbf.io import atomic_path
-    from o3drbf.plotting import _headless
+    from o3drbf.io.files import atomic_path
+    from o3drbf.pictures import _headless
 
     _headless()
     import pyvista as pv
@@ -79,9 +79,9 @@ def main(argv=None) -> int:
     import numpy as np
 
     from o3drbf import reconstruct
-    from o3drbf.io import write_mesh
-    from o3drbf.metrics import chamfer, mesh_report
-    from o3drbf.shapes import TorusStack
+    from o3drbf.io.files import write_mesh
+    from o3drbf.mesh.metrics import chamfer, mesh_report
+    from o3drbf.synthetic.shapes import TorusStack
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -138,7 +138,7 @@ def main(argv=None) -> int:
     print("(data units: tori R 0.6, r 0.2; truth: 3 components, Euler characteristic 0, genus 3; Chamfer to 200,000 points on the analytic surface)")
 
     for name, fn in (("plot", lambda: plot(times, out / "fig34_solve_time.png")),
-                     ("picture", lambda: str(__import__("o3drbf.plotting", fromlist=["side_by_side"]).side_by_side(
+                     ("picture", lambda: str(__import__("o3drbf.pictures", fromlist=["side_by_side"]).side_by_side(
                          panels, out / "fig34_bases.png", window_size=(1500, 500), points=np.asarray(points)[::10])))):
         try:
             print(f"{name}: {fn()}")

@@ -46,9 +46,9 @@ def main(argv=None) -> int:
     import numpy as np
 
     from o3drbf import reconstruct
-    from o3drbf.io import write_mesh
-    from o3drbf.metrics import chamfer, fitness_error, mesh_report
-    from o3drbf.shapes import TorusStack
+    from o3drbf.io.files import write_mesh
+    from o3drbf.mesh.metrics import chamfer, fitness_error, mesh_report
+    from o3drbf.synthetic.shapes import TorusStack
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -83,7 +83,7 @@ def main(argv=None) -> int:
         )
     print("(fitness error: distance from all input points to the mesh, data units; the paper's values are for the dinosaur head in its own units)")
     try:
-        from o3drbf.plotting import side_by_side
+        from o3drbf.pictures import side_by_side
 
         print(f"picture: {side_by_side(panels, out / 'fig7_subset.png', window_size=(1200, 600))}")
     except Exception as exc:  # pragma: no cover - no OpenGL

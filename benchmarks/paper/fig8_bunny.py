@@ -35,8 +35,8 @@ PAPER = {"surface": 2168, "exterior": 193, "spacing": 0.051, "delta": 10.0, "tau
 
 def render(mesh, surface_pts, exterior_pts, path: Path, window_size=(1800, 600)) -> Path:
     """Three views of the mesh with the constraints drawn as squares (blue surface, green exterior)."""
-    from o3drbf.io import atomic_path
-    from o3drbf.plotting import _headless, to_pyvista
+    from o3drbf.io.files import atomic_path
+    from o3drbf.pictures import _headless, to_pyvista
 
     _headless()
     import pyvista as pv
@@ -73,8 +73,8 @@ def main(argv=None) -> int:
     import open3d as o3d
 
     from o3drbf import reconstruct
-    from o3drbf.metrics import chamfer, mesh_report, normal_consistency
-    from o3drbf.scans import range_scans
+    from o3drbf.mesh.metrics import chamfer, mesh_report, normal_consistency
+    from o3drbf.synthetic.scans import range_scans
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -39,8 +39,8 @@ GRIDS = {
 
 def plot(results, path: Path) -> str:
     """Fitness error (mean) and average curvature vs each parameter, one chart per parameter."""
-    from o3drbf.io import atomic_path
-    from o3drbf.plotting import _headless
+    from o3drbf.io.files import atomic_path
+    from o3drbf.pictures import _headless
 
     _headless()
     import pyvista as pv
@@ -80,8 +80,8 @@ def main(argv=None) -> int:
     import numpy as np
 
     from o3drbf import reconstruct
-    from o3drbf.metrics import average_curvature, chamfer, fitness_error, mesh_report
-    from o3drbf.shapes import Torus
+    from o3drbf.mesh.metrics import average_curvature, chamfer, fitness_error, mesh_report
+    from o3drbf.synthetic.shapes import Torus
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

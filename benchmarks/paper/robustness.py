@@ -1,6 +1,6 @@
 """Robustness against Open3D Poisson: noisy, sparse, non-uniform range scans.
 
-Synthetic range scans (:func:`o3drbf.scans.range_scans`, 200x150-pixel
+Synthetic range scans (:func:`o3drbf.synthetic.scans.range_scans`, 200x150-pixel
 pinhole cameras on rings around the object) of meshes built by the
 repo -- a stack of three tori (genus 3, three components, narrow gaps) and a
 cube (sharp edges and corners) -- with
@@ -23,7 +23,7 @@ whatever the outlier level, since a user does not know it).  Methods:
   (delta, tau, lambda from the spacing and the estimated noise);
 - ``multiorder-paper``: the paper's fixed delta 10, tau 0.01, lambda 1e-3;
 - ``poisson``: Open3D screened Poisson, depth 8, normals estimated (30
-  neighbours) and oriented toward the cameras (:func:`o3drbf.compare.open3d_normals`);
+  neighbours) and oriented toward the cameras (:func:`o3drbf.evaluation.compare.open3d_normals`);
 - ``poisson-trim``: the same mesh with the vertices below the 5 % density
   quantile removed (Open3D's usual trimming; never closed).
 
@@ -32,7 +32,7 @@ surface constraints and marching cubes at ``--resolution`` (96) cells.
 Measures against the true mesh (the whole of it, unseen undersides
 included): Chamfer L1 (data units; the diagonals are 2.66 for the torus
 stack and 1.73 for the cube), normal consistency, watertight
-(:func:`o3drbf.metrics.mesh_report`: closed and vertex-manifold).
+(:func:`o3drbf.mesh.metrics.mesh_report`: closed and vertex-manifold).
 
 Outputs in ``--out``: ``robustness.jsonl`` (one row per run, appended as the
 runs finish, so an interrupted study resumes), ``robustness.csv``,
@@ -73,7 +73,7 @@ def make_mesh(name: str):
     import open3d as o3d
 
     if name == "torus-stack":
-        from o3drbf.shapes import TorusStack
+        from o3drbf.synthetic.shapes import TorusStack
 
         mesh = o3d.geometry.TriangleMesh()
         for t in TorusStack().tori:
@@ -81,7 +81,7 @@ def make_mesh(name: str):
             mesh += part.translate(np.asarray(t.center, dtype=float))
         return mesh
     if name == "cube":
-        from o3drbf.shapes import Cube
+        from o3drbf.synthetic.shapes import Cube
 
         half = Cube().half
         mesh = o3d.geometry.TriangleMesh.create_box(2 * half, 2 * half, 2 * half).translate((-half, -half, -half))
@@ -93,7 +93,7 @@ def scan(mesh, views: int, noise_pct: float, outliers_pct: float, seed: int):
     """(points, point_camera, cameras, diagonal): range scans plus uniform outliers in the padded box."""
     import numpy as np
 
-    from o3drbf.scans import range_scans
+    from o3drbf.synthetic.scans import range_scans
 
     v = np.asarray(mesh.vertices)
     lo, hi = v.min(axis=0), v.max(axis=0)
@@ -117,7 +117,7 @@ def scan(mesh, views: int, noise_pct: float, outliers_pct: float, seed: int):
 
 
 def measure(mesh, truth, seed: int) -> dict:
-    from o3drbf.metrics import chamfer, mesh_report, normal_consistency
+    from o3drbf.mesh.metrics import chamfer, mesh_report, normal_consistency
 
     rep = mesh_report(mesh)
     return {
@@ -133,8 +133,8 @@ def run_case(mesh_name, mesh, views, outliers_pct, noise_pct, args) -> list[dict
     import open3d as o3d
 
     from o3drbf import reconstruct
-    from o3drbf.compare import open3d_normals
-    from o3drbf.preprocess import statistical_outliers
+    from o3drbf.evaluation.compare import open3d_normals
+    from o3drbf.prep.outliers import statistical_outliers
 
     pts, owner, cams, _ = scan(mesh, views, noise_pct, outliers_pct, args.seed)
     kept, _ = statistical_outliers(pts)
@@ -231,8 +231,8 @@ def table(rows) -> str:
 
 def plot(rows, path: Path) -> str:
     """Chamfer L1 vs noise, one line per mesh x method, one panel per (outliers, views)."""
-    from o3drbf.io import atomic_path
-    from o3drbf.plotting import _headless
+    from o3drbf.io.files import atomic_path
+    from o3drbf.pictures import _headless
 
     _headless()
     import pyvista as pv
@@ -263,7 +263,7 @@ def plot(rows, path: Path) -> str:
 
 
 def write_outputs(rows, out: Path, settings: str) -> None:
-    from o3drbf.io import atomic_path
+    from o3drbf.io.files import atomic_path
 
     rows = sorted(rows, key=_key)
     with atomic_path(out / "robustness.csv") as tmp, open(tmp, "w", newline="") as fh:

@@ -1,0 +1,5 @@
+import sys
+
+from o3drbf.cli.commands import main
+
+sys.exit(main())

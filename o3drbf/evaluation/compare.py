@@ -1,0 +1,634 @@
+"""Run several reconstruction methods on the same points and compare them.
+
+    o3drbf compare INPUT [--cameras F] [--truth MESH] [--methods ...] [-o OUT_DIR]
+
+Methods (:data:`METHODS`): the three o3drbf bases (``multiorder``,
+``thinplate``, ``gaussian``) and three Open3D reconstructions run the way a
+user would run them (``poisson``, ``bpa`` ball pivoting, ``alpha`` shapes):
+
+- normals: the given ones; otherwise Open3D estimates them (30 nearest
+  neighbours) and orients them -- toward the camera that saw each point (or
+  the nearest camera) when cameras are given, otherwise consistently over
+  the neighbour graph and then outward (:func:`o3drbf.pipeline.estimate_normals`);
+- Poisson: octree depth ``poisson_depth`` (8) and optional density trimming
+  (``density_quantile``, 0 keeps the closed surface);
+- ball pivoting: radii ``[1, 2, 4] x`` the mean nearest-neighbour spacing;
+- alpha shapes: ``alpha = 3 x`` the mean spacing.
+
+A method that fails (Open3D raises, or returns an empty mesh) gives a row
+with an ``error`` and no measures, instead of stopping the comparison.
+
+Memory: ``peak_bytes`` is the peak of Python-level allocations during the
+method, measured with :mod:`tracemalloc`.  NumPy arrays are counted (NumPy
+reports its buffers to tracemalloc); memory allocated inside Open3D's or
+Numba's compiled code is *not*, so for the Open3D methods it is a lower
+bound.  ``rss_peak_mb`` in the table sees every allocation, Open3D's too:
+the peak of the process's resident set above its level when the method
+started, sampled every 5 ms from ``/proc/self/statm`` by a background thread
+(Linux; None elsewhere; allocations shorter than 5 ms can be missed, and
+pages freed earlier but kept by the allocator are not counted again).
+Times are wall-clock seconds with tracemalloc on.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io as _io
+import json
+import math
+import os
+import threading
+import time
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+
+from o3drbf.validation import as_points, check_number
+
+__all__ = [
+    "METHODS",
+    "run_method",
+    "compare",
+    "compare_with_meshes",
+    "write_tables",
+    "picture",
+    "main_compare",
+    "add_compare_arguments",
+    "parse_methods",
+    "COLUMNS",
+]
+
+METHODS = ("multiorder", "thinplate", "gaussian", "poisson", "bpa", "alpha")
+
+#: Table columns, in order (every row has every key; missing values are None).
+COLUMNS = (
+    "method",
+    "seconds",
+    "peak_mb",
+    "rss_peak_mb",
+    "triangles",
+    "vertices",
+    "watertight",
+    "components",
+    "euler_characteristic",
+    "genus",
+    "fitness_mean",
+    "fitness_rms",
+    "average_curvature",
+    "chamfer_l1",
+    "chamfer_l2",
+    "hausdorff",
+    "f_score",
+    "precision",
+    "recall",
+    "f_threshold",
+    "normal_consistency",
+    "error",
+)
+
+_BPA_RADII = (1.0, 2.0, 4.0)
+_ALPHA_FACTOR = 3.0
+_NORMAL_K = 30
+
+
+# --------------------------------------------------------------------------
+# inputs
+
+
+def parse_methods(methods) -> tuple[str, ...]:
+    """Method names from a comma-separated string or a sequence.
+
+    Raises ``ValueError`` naming the unknown ones and listing the valid ones.
+    """
+    if isinstance(methods, str):
+        names = [m.strip().lower() for m in methods.split(",") if m.strip()]
+    else:
+        names = [str(m).strip().lower() for m in methods]
+    if not names:
+        raise ValueError(f"no methods given; valid methods: {', '.join(METHODS)}")
+    unknown = [m for m in names if m not in METHODS]
+    if unknown:
+        raise ValueError(f"unknown method(s) {', '.join(map(repr, unknown))}; valid methods: {', '.join(METHODS)}")
+    return tuple(dict.fromkeys(names))  # drop repeats, keep order
+
+
+def mean_spacing(points) -> float:
+    """Mean distance from each point to its nearest neighbour."""
+    from scipy.spatial import cKDTree
+
+    pts = as_points(points, min_count=2)
+    d, _ = cKDTree(pts).query(pts, k=2)
+    return float(d[:, 1].mean())
+
+
+def _camera_list(cameras):
+    if cameras is None:
+        return None
+    if isinstance(cameras, (str, Path)):
+        from o3drbf.cameras.model import load_cameras
+
+        cameras = load_cameras(cameras)
+    cams = list(cameras)
+    return cams or None
+
+
+def open3d_normals(points, cameras=None, point_camera=None, k: int = _NORMAL_K) -> np.ndarray:
+    """Normals the way an Open3D user gets them.
+
+    Open3D estimate (``k`` nearest neighbours) and consistent tangent-plane
+    orientation, then:
+
+    - without cameras, flipped outward as a whole
+      (:func:`o3drbf.pipeline.estimate_normals`);
+    - with cameras, flipped as a whole so that most normals face their
+      nearest camera (the centre; against the viewing direction for direction
+      sensors); and where ``point_camera`` says which camera saw a point, that
+      normal is flipped to face that camera.  (Flipping every normal toward
+      its nearest camera alone goes wrong where the nearest camera does not
+      see the point, e.g. inside a torus's hole.)
+    """
+    cams = _camera_list(cameras)
+    pts = as_points(points, min_count=4)
+    if cams is None:
+        from o3drbf.pipeline import estimate_normals
+
+        return estimate_normals(pts, k=k)
+    import open3d as o3d
+
+    k = min(int(k), len(pts) - 1)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(k))
+    consistent = True
+    try:
+        pcd.orient_normals_consistent_tangent_plane(min(k, 15))
+    except RuntimeError:  # degenerate neighbour graphs: per point only
+        consistent = False
+    n = np.asarray(pcd.normals).copy()
+    dirs = np.empty((len(cams), len(pts), 3))
+    dist = np.empty((len(cams), len(pts)))
+    for c, cam in enumerate(cams):
+        dirs[c], dist[c] = cam.toward(pts)
+    idx = np.arange(len(pts))
+    facing = np.einsum("ij,ij->i", n, dirs[np.argmin(dist, axis=0), idx])
+    if consistent:
+        if facing.mean() < 0:
+            n = -n
+    else:
+        n[facing < 0] *= -1
+    if point_camera is not None:
+        pc = np.asarray(point_camera).reshape(-1)
+        if pc.shape == (len(pts),):
+            seen = pc >= 0
+            flip = seen.copy()
+            flip[seen] = np.einsum("ij,ij->i", n[seen], dirs[pc[seen], idx[seen]]) < 0
+            n[flip] *= -1
+    return n
+
+
+# --------------------------------------------------------------------------
+# running one method
+
+
+def _open3d_cloud(points, normals):
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=float)))
+    pcd.normals = o3d.utility.Vector3dVector(np.asarray(normals, dtype=float))
+    return pcd
+
+
+def _run(name, points, normals, cameras, options):
+    import open3d as o3d
+
+    seed = int(options.get("seed", 0))
+    if name in ("multiorder", "thinplate", "gaussian"):
+        from o3drbf.pipeline import reconstruct
+
+        kw = {k: options[k] for k in ("resolution", "surface_count", "outliers", "delta", "tau", "sigma", "lambda_surface") if k in options}
+        result = reconstruct(points, normals, cameras=cameras, point_camera=options.get("point_camera") if cameras is not None else None, basis=name, seed=seed, **kw)
+        return result.mesh
+    if normals is None:
+        normals = open3d_normals(points, cameras, options.get("point_camera"))
+    spacing = options.get("spacing") or mean_spacing(points)
+    if name == "poisson":
+        from o3drbf.evaluation.peers import poisson
+
+        return poisson(points, normals, depth=options.get("poisson_depth", 8), density_quantile=options.get("density_quantile", 0.0))
+    pcd = _open3d_cloud(points, normals)
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        if name == "bpa":
+            radii = o3d.utility.DoubleVector([r * spacing for r in options.get("bpa_radii", _BPA_RADII)])
+            mesh = o3d.geometry.TriangleMesh.create_from_point_cloud_ball_pivoting(pcd, radii)
+        elif name == "alpha":
+            alpha = options.get("alpha") or _ALPHA_FACTOR * spacing
+            mesh = o3d.geometry.TriangleMesh.create_from_point_cloud_alpha_shape(pcd, alpha)
+        else:  # pragma: no cover - names are checked before
+            raise ValueError(f"unknown method {name!r}; valid methods: {', '.join(METHODS)}")
+    mesh.compute_vertex_normals()
+    return mesh
+
+
+def run_method(name: str, points, normals=None, cameras=None, **options):
+    """Run one method on the points.
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`METHODS`.
+    points : (N, 3) array_like
+    normals : (N, 3) array_like, optional
+        Outward normals.  Without them the o3drbf bases estimate their own
+        (or use the cameras); the Open3D methods use :func:`open3d_normals`.
+    cameras : sequence of Camera, CameraSet or camera file, optional
+    **options
+        ``resolution``, ``surface_count``, ``seed`` (o3drbf);
+        ``poisson_depth`` (8), ``density_quantile`` (0); ``spacing`` (the
+        mean nearest-neighbour spacing, computed when absent),
+        ``bpa_radii`` (multiples of the spacing, ``(1, 2, 4)``), ``alpha``
+        (data units, default ``3 x spacing``); ``point_camera``.
+
+    Returns
+    -------
+    mesh : open3d.geometry.TriangleMesh
+    seconds : float
+        Wall-clock time of the method (normal estimation included).
+    peak_bytes : int
+        Peak Python/NumPy allocation during the method (tracemalloc; memory
+        allocated inside Open3D's C++ code is not seen).
+
+    Raises
+    ------
+    ValueError
+        Unknown method name; whatever the method raises (Open3D failures
+        come through as ``RuntimeError``), and ``RuntimeError`` when it
+        returns a mesh without triangles.
+    """
+    (name,) = parse_methods([name])
+    pts = as_points(points, min_count=4)
+    was_tracing = tracemalloc.is_tracing()
+    if not was_tracing:
+        tracemalloc.start()
+    tracemalloc.reset_peak()
+    base, _ = tracemalloc.get_traced_memory()
+    t0 = time.perf_counter()
+    try:
+        mesh = _run(name, pts, normals, cameras, options)
+        seconds = time.perf_counter() - t0
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        if not was_tracing:
+            tracemalloc.stop()
+    if mesh is None or len(mesh.triangles) == 0:
+        raise RuntimeError(f"{name} produced no triangles")
+    return mesh, float(seconds), int(max(peak - base, 0))
+
+
+# --------------------------------------------------------------------------
+# comparing
+
+
+class _RssPeak:
+    """Peak resident-set growth while the ``with`` block runs (Linux
+    ``/proc/self/statm``, sampled every ``interval`` s); ``None`` elsewhere."""
+
+    def __init__(self, interval: float = 0.005):
+        self.interval = interval
+        self.peak_bytes = None
+        self._stop = threading.Event()
+
+    @staticmethod
+    def _rss():
+        try:
+            with open("/proc/self/statm") as fh:
+                return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+        except (OSError, ValueError, IndexError):
+            return None
+
+    def _poll(self):
+        while not self._stop.wait(self.interval):
+            self._high = max(self._high, self._rss() or 0)
+
+    def __enter__(self):
+        self._base = self._rss()
+        if self._base is not None:
+            self._high = self._base
+            self._thread = threading.Thread(target=self._poll, daemon=True)
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        if self._base is not None:
+            self._stop.set()
+            self._thread.join()
+            self._high = max(self._high, self._rss() or 0)
+            self.peak_bytes = self._high - self._base
+        return False
+
+
+def _finite(x):
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _measure(row, mesh, points, truth, threshold, n_samples, seed):
+    from o3drbf.mesh import metrics
+
+    rep = metrics.mesh_report(mesh)
+    row.update(
+        triangles=rep["triangles"],
+        vertices=rep["vertices"],
+        watertight=rep["watertight"],
+        components=rep["components"],
+        euler_characteristic=int(rep["euler_characteristic"]),
+        genus=rep["genus"],
+    )
+    fit = metrics.fitness_error(points, mesh)
+    row.update(fitness_mean=_finite(fit["mean"]), fitness_rms=_finite(fit["rms"]))
+    try:
+        row["average_curvature"] = _finite(metrics.average_curvature(mesh))
+    except ValueError:
+        row["average_curvature"] = None
+    if truth is not None:
+        ch = metrics.chamfer(mesh, truth, n_samples=n_samples, seed=seed)
+        fs = metrics.f_score(mesh, truth, threshold, n_samples=n_samples, seed=seed)
+        row.update(
+            chamfer_l1=_finite(ch["l1"]),
+            chamfer_l2=_finite(ch["l2"]),
+            hausdorff=_finite(ch["hausdorff"]),
+            f_score=_finite(fs["f"]),
+            precision=_finite(fs["precision"]),
+            recall=_finite(fs["recall"]),
+            f_threshold=float(threshold),
+            normal_consistency=_finite(metrics.normal_consistency(mesh, truth, n_samples=n_samples, seed=seed)),
+        )
+
+
+def _check_truth(truth):
+    from o3drbf.mesh.metrics import _mesh_arrays
+
+    verts, _ = _mesh_arrays(truth, "truth")
+    return verts
+
+
+def compare_with_meshes(
+    points,
+    normals=None,
+    cameras=None,
+    truth=None,
+    methods=METHODS,
+    seed: int = 0,
+    resolution: int = 128,
+    poisson_depth: int = 8,
+    density_quantile: float = 0.0,
+    *,
+    point_camera=None,
+    surface_count: int = 3000,
+    n_samples: int = 100_000,
+):
+    """As :func:`compare`, and also the meshes: ``(rows, {name: mesh or None})``."""
+    names = parse_methods(methods)
+    pts = as_points(points, min_count=4)
+    if normals is not None:
+        normals = np.asarray(normals, dtype=float)
+        if normals.shape != pts.shape or not np.isfinite(normals).all():
+            raise ValueError(f"normals must be a finite {pts.shape} array like the points, got {normals.shape}")
+    seed = check_number("seed", seed, low=0, integer=True)
+    resolution = check_number("resolution", resolution, low=2, integer=True)
+    poisson_depth = check_number("poisson_depth", poisson_depth, low=1, high=12, integer=True)
+    density_quantile = check_number("density_quantile", density_quantile, low=0.0, high=1.0)
+    cams = _camera_list(cameras)
+    threshold = None
+    if truth is not None:
+        tv = _check_truth(truth)
+        threshold = 0.01 * float(np.linalg.norm(tv.max(axis=0) - tv.min(axis=0)))
+    options = dict(
+        seed=seed,
+        resolution=resolution,
+        surface_count=surface_count,
+        poisson_depth=poisson_depth,
+        density_quantile=density_quantile,
+        spacing=mean_spacing(pts),
+        point_camera=point_camera,
+    )
+    open3d_nrm = normals
+    rows, meshes = [], {}
+    for name in names:
+        row = dict.fromkeys(COLUMNS)
+        row["method"] = name
+        mesh = None
+        try:
+            nrm, normal_seconds = normals, 0.0
+            if name in ("poisson", "bpa", "alpha"):
+                if open3d_nrm is None:  # estimated once, shared by the Open3D methods; timed in the first
+                    t0 = time.perf_counter()
+                    open3d_nrm = open3d_normals(pts, cams, point_camera)
+                    normal_seconds = time.perf_counter() - t0
+                nrm = open3d_nrm
+            with _RssPeak() as rss:
+                mesh, seconds, peak = run_method(name, pts, nrm, cams, **options)
+            seconds += normal_seconds
+            row.update(seconds=round(seconds, 4), peak_mb=round(peak / 2**20, 2), rss_peak_mb=None if rss.peak_bytes is None else round(rss.peak_bytes / 2**20, 2))
+            _measure(row, mesh, pts, truth, threshold, n_samples, seed)
+        except Exception as exc:  # one failing method must not stop the others
+            row["error"] = f"{type(exc).__name__}: {' '.join(str(exc).split())}"[:300]
+        rows.append(row)
+        meshes[name] = mesh
+    return rows, meshes
+
+
+def compare(points, normals=None, cameras=None, truth=None, methods=METHODS, seed=0, resolution=128, poisson_depth=8, density_quantile=0.0, **kw) -> list[dict]:
+    """Run each method on the same points and measure the results.
+
+    Parameters
+    ----------
+    points : (N, 3) array_like
+    normals : (N, 3) array_like, optional
+        Given to every method; without them each estimates its own
+        (o3drbf: see :func:`o3drbf.reconstruct`; Open3D: :func:`open3d_normals`).
+    cameras : sequence of Camera, CameraSet or camera file, optional
+    truth : open3d.geometry.TriangleMesh, optional
+        Ground truth: adds Chamfer L1/L2, Hausdorff, F-score at 1% of its
+        bounding-box diagonal, and normal consistency.
+    methods : sequence of str or comma-separated str
+    seed, resolution : int
+        o3drbf sampling seed (also the metrics' sampling seed) and
+        marching-cubes resolution.
+    poisson_depth : int
+    density_quantile : float
+        Poisson density trimming (0: none).
+    **kw
+        ``point_camera``, ``surface_count`` (3000), ``n_samples`` (points
+        drawn per mesh for the truth measures, 100,000).
+
+    Returns
+    -------
+    list of dict
+        One row per method with the keys :data:`COLUMNS` (``None`` where a
+        value does not apply or the method failed; ``error`` says why).
+        Watertight is :func:`o3drbf.mesh.metrics.mesh_report`'s (closed and
+        vertex-manifold, self-intersections not tested).
+
+    Raises
+    ------
+    ValueError
+        Unknown method names (the message lists the valid ones), bad points,
+        normals or parameters, a truth mesh without triangles.
+    """
+    rows, _ = compare_with_meshes(points, normals, cameras, truth, methods, seed, resolution, poisson_depth, density_quantile, **kw)
+    return rows
+
+
+# --------------------------------------------------------------------------
+# output
+
+
+def _fmt(value) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return str(value)
+
+
+def markdown_table(rows) -> str:
+    """The rows as a markdown table (columns with no value in any row are left out)."""
+    cols = [c for c in COLUMNS if c == "method" or any(r.get(c) is not None for r in rows)]
+    lines = ["| " + " | ".join(cols) + " |", "|" + "|".join("---" for _ in cols) + "|"]
+    for r in rows:
+        lines.append("| " + " | ".join(_fmt(r.get(c)).replace("|", "/") for c in cols) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def write_tables(rows, out_dir, stem: str = "comparison") -> dict:
+    """Write ``comparison.md``, ``comparison.csv`` and ``comparison.json``.
+
+    Each file is written atomically.  The JSON holds the rows exactly (a
+    list of objects, ``null`` for missing values); the CSV has a header with
+    :data:`COLUMNS` and empty cells for missing values.
+
+    Returns
+    -------
+    dict
+        ``{"markdown": Path, "csv": Path, "json": Path}``.
+    """
+    from o3drbf.io.files import atomic_path
+
+    out = Path(out_dir)
+    if not out.is_dir():
+        raise FileNotFoundError(f"output folder does not exist: {out}")
+    rows = [{c: r.get(c) for c in COLUMNS} for r in rows]
+    paths = {"markdown": out / f"{stem}.md", "csv": out / f"{stem}.csv", "json": out / f"{stem}.json"}
+    buf = _io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(COLUMNS), lineterminator="\n")
+    writer.writeheader()
+    for r in rows:
+        writer.writerow({c: "" if v is None else v for c, v in r.items()})
+    texts = {"markdown": markdown_table(rows), "csv": buf.getvalue(), "json": json.dumps(rows, indent=2, allow_nan=False) + "\n"}
+    for key, path in paths.items():
+        with atomic_path(path) as tmp:
+            Path(tmp).write_text(texts[key], encoding="utf-8")
+    return paths
+
+
+def picture(meshes: dict, path, points=None, view=(1.0, -1.2, 0.9), viewup=(0.0, 0.0, 1.0)) -> Path:
+    """A side-by-side PNG of the meshes (``{name: mesh or None}``) from one viewpoint.
+
+    Failed methods (``None`` or empty meshes) get an empty panel with
+    "(failed)" in the title.  ``points`` are drawn in the first panel.
+    """
+    from o3drbf.pictures import side_by_side
+
+    if not meshes:
+        raise ValueError("no meshes to draw")
+    panels = []
+    for name, mesh in meshes.items():
+        ok = mesh is not None and len(mesh.triangles) > 0
+        panels.append((name if ok else f"{name} (failed)", mesh if ok else None))
+    n = len(panels)
+    return side_by_side(panels, path, window_size=(min(420 * n, 3360), 420), points=points, view=view, viewup=viewup)
+
+
+# --------------------------------------------------------------------------
+# command line
+
+
+def add_compare_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Add the ``compare`` arguments to a (sub)parser; returns it."""
+    parser.description = parser.description or (
+        "Run several reconstruction methods on the same points and compare them: "
+        "a table (markdown, CSV, JSON) of time, memory, triangles, watertightness and "
+        "quality measures, and a side-by-side picture."
+    )
+    parser.add_argument(
+        "input",
+        help="point cloud file (normals used when present), or a file that holds points and cameras "
+        "(Stanford .conf, COLMAP text folder, Bundler bundle.out, o3drbf scan .json)",
+    )
+    parser.add_argument("--cameras", metavar="FILE", default=None, help="cameras that saw the points: Open3D normals are oriented toward them, o3drbf uses them for exterior constraints")
+    parser.add_argument("--truth", metavar="MESH", default=None, help="ground-truth mesh: adds Chamfer, Hausdorff, F-score (1%% of its diagonal) and normal consistency")
+    parser.add_argument("--methods", default=",".join(METHODS), help="comma-separated, from: " + ", ".join(METHODS) + " (default: all)")
+    parser.add_argument("-o", "--out", metavar="OUT_DIR", default="comparison", help="output folder for comparison.{md,csv,json,png} (created; default %(default)s)")
+    parser.add_argument("--resolution", type=int, default=128, help="o3drbf marching-cubes resolution (default %(default)s)")
+    parser.add_argument("--poisson-depth", type=int, default=8, help="Open3D Poisson octree depth (default %(default)s)")
+    parser.add_argument("--density-quantile", type=float, default=0.0, help="Poisson: trim vertices below this density quantile (default %(default)s: closed surface)")
+    parser.add_argument("--seed", type=int, default=0, help="sampling seed (default %(default)s)")
+    return parser
+
+
+def _read_truth(path):
+    import open3d as o3d
+
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"cannot read truth mesh {p}: file not found")
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        mesh = o3d.io.read_triangle_mesh(str(p))
+    if len(mesh.triangles) == 0:
+        raise ValueError(f"cannot read truth mesh {p}: no triangles (not a mesh file Open3D reads: PLY, OBJ, STL, OFF, glTF)")
+    return mesh
+
+
+def main_compare(args: argparse.Namespace) -> int:
+    """``o3drbf compare``: run, write the tables and the picture, print the table.
+
+    Raises ``ValueError`` / ``FileNotFoundError`` on bad input (the CLI turns
+    them into ``o3drbf: error: ...`` and exit status 2).
+    """
+    from o3drbf.cli.commands import _read_input
+
+    methods = parse_methods(getattr(args, "methods", None) or ",".join(METHODS))
+    truth = _read_truth(args.truth) if getattr(args, "truth", None) else None
+    points, normals, cameras, point_camera = _read_input(args.input)
+    if getattr(args, "cameras", None):
+        from o3drbf.cameras.model import load_cameras
+
+        cameras, point_camera = load_cameras(args.cameras), None
+    out = Path(getattr(args, "out", None) or "comparison")
+    out.mkdir(parents=True, exist_ok=True)
+    rows, meshes = compare_with_meshes(
+        points,
+        normals,
+        cameras,
+        truth,
+        methods,
+        seed=getattr(args, "seed", 0),
+        resolution=getattr(args, "resolution", 128),
+        poisson_depth=getattr(args, "poisson_depth", 8),
+        density_quantile=getattr(args, "density_quantile", 0.0),
+        point_camera=point_camera,
+    )
+    paths = write_tables(rows, out)
+    png = picture(meshes, out / "comparison.png", points=points if len(points) <= 200_000 else None)
+    print(f"o3drbf compare: {args.input} ({len(points):,} points) -> {out}/")
+    print(markdown_table(rows), end="")
+    for row in rows:
+        if row["error"]:
+            print(f"  {row['method']} failed: {row['error']}")
+    print("  wrote " + ", ".join(str(p) for p in (*paths.values(), png)))
+    return 0

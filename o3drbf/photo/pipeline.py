@@ -1,0 +1,510 @@
+"""``o3drbf photos``: calibrated photographs to a closed, coloured mesh (the paper's Fig. 9).
+
+    o3drbf photos IMAGES_DIR --calibration FILE -o model.ply [--picture fig9.png]
+
+Stages (each with a progress bar and a summary line):
+
+1. read the calibration (Middlebury ``*_par.txt``, Bundler ``bundle.out`` with
+   its list, COLMAP text model) and the images it names;
+2. carve a voxel volume (:func:`o3drbf.photo.carve.carve`): silhouettes by
+   background colour, then visibility-aware photo-consistency;
+3. reconstruct (:func:`o3drbf.pipeline.reconstruct`): the shell voxels are the
+   surface points, exterior constraints go toward the cameras that see them,
+   the largest component is kept;
+4. colour the mesh from the photographs (:func:`o3drbf.mesh.color.color_mesh`;
+   the shell voxels' colours where no camera sees a vertex);
+5. check: silhouette intersection over union per image, by ray casting the
+   mesh from every camera; optionally a picture of the coloured model next
+   to an input photograph from the same camera.
+
+:func:`run_photos` does it all from Python and returns a :class:`PhotosResult`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import os
+import re
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from o3drbf.photo import carve as carving
+
+__all__ = ["add_photos_arguments", "main_photos", "run_photos", "PhotosResult", "readme_bounds", "picture", "PHOTO_DEFAULTS"]
+
+log = logging.getLogger("o3drbf")
+
+#: Reconstruction defaults for carved shells (delta 3-5 measured better than the paper's 10).
+PHOTO_DEFAULTS = {"delta": 4.0, "tau": 0.01, "lambda_surface": 1e-4, "exterior_ratio": 0.5, "surface_count": 3000, "mesh_resolution": 128}
+
+
+@dataclass
+class PhotosResult:
+    """What :func:`run_photos` returns.
+
+    Attributes
+    ----------
+    mesh : open3d.geometry.TriangleMesh
+        Closed, coloured mesh (world coordinates of the calibration).
+    cameras : list of Camera
+    images : list of (H, W, 3) float arrays
+    masks : list of (H, W) bool arrays
+        The silhouettes used for carving.
+    carve : CarveResult
+    reconstruction : Reconstruction
+    iou : (n_cameras,) array
+        Silhouette IoU per image, against the silhouettes restricted to where
+        the carving box projects (what can be object).
+    iou_raw : (n_cameras,) array
+        Against the raw silhouettes.
+    stats : dict
+        Timings and counts per stage.
+    """
+
+    mesh: object
+    cameras: list
+    images: list
+    masks: list
+    carve: object
+    reconstruction: object
+    iou: np.ndarray
+    iou_raw: np.ndarray
+    stats: dict = field(default_factory=dict)
+
+
+_TRIPLE = r"\(\s*([-+0-9.eE]+)[\s,]+([-+0-9.eE]+)[\s,]+([-+0-9.eE]+)\s*\)"
+
+
+def readme_bounds(folder: str | os.PathLike) -> np.ndarray | None:
+    """The bounding box a Middlebury ``README.txt`` gives, or None.
+
+    Looks for "bounding box" followed by two ``(x y z)`` triples.
+    """
+    folder = Path(folder)
+    for name in ("README.txt", "readme.txt", "README"):
+        p = folder / name
+        if not p.is_file():
+            continue
+        text = p.read_text(encoding="utf-8", errors="replace")
+        k = text.lower().find("bounding box")
+        if k < 0:
+            continue
+        found = re.findall(_TRIPLE, text[k:])
+        if len(found) >= 2:
+            b = np.array(found[:2], dtype=float)
+            lo, hi = b.min(axis=0), b.max(axis=0)
+            if (hi > lo).all():
+                return np.stack([lo, hi])
+    return None
+
+
+def _load(images_dir, calibration):
+    from o3drbf.cameras.model import load_cameras
+
+    folder = Path(images_dir)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"image folder not found: {folder}")
+    cal = Path(calibration) if calibration else folder
+    if calibration and not cal.exists():
+        raise FileNotFoundError(f"calibration not found: {cal}")
+    cams = load_cameras(cal)
+    if cams.format == "bundler" and cams[0].width is None:
+        # Bundler's principal point is the image centre: the loader needs the size.
+        first = carving._find_image(folder, cams[0].name)
+        if first is not None:
+            h, w = carving.read_image(first).shape[:2]
+            cams = load_cameras(cal, image_size=(w, h))
+    bad = [c.name or str(i) for i, c in enumerate(cams) if c.kind != "pinhole"]
+    if bad:
+        raise ValueError(f"{cal}: cameras {', '.join(bad[:3])} are not pinhole cameras; photographs need K, R, t")
+    images, cams2 = carving.read_images(folder, cams)
+    return images, cams2, cams
+
+
+def run_photos(
+    images_dir,
+    calibration=None,
+    *,
+    bounds="auto",
+    resolution: int = carving.DEFAULTS["resolution"],
+    background=carving.DEFAULTS["background"],
+    threshold: float = carving.DEFAULTS["threshold"],
+    min_area: int = carving.DEFAULTS["min_area"],
+    photo_consistency: float | None = carving.DEFAULTS["photo_consistency"],
+    sweeps: int = carving.DEFAULTS["sweeps"],
+    keep_silhouettes: bool = True,
+    delta: float = PHOTO_DEFAULTS["delta"],
+    tau: float = PHOTO_DEFAULTS["tau"],
+    lambda_surface: float = PHOTO_DEFAULTS["lambda_surface"],
+    exterior_ratio: float = PHOTO_DEFAULTS["exterior_ratio"],
+    surface_count: int = PHOTO_DEFAULTS["surface_count"],
+    mesh_resolution: int = PHOTO_DEFAULTS["mesh_resolution"],
+    iou_stride: int = 1,
+    seed: int = 0,
+    progress: bool = False,
+    images=None,
+    cameras=None,
+    **reconstruct_options,
+) -> PhotosResult:
+    """Calibrated photographs to a closed, coloured mesh.
+
+    Parameters
+    ----------
+    images_dir : path-like
+        Folder of the photographs (ignored when ``images`` and ``cameras``
+        are given).
+    calibration : path-like, optional
+        Camera file or folder (default: found in ``images_dir``).
+    bounds : "auto", "silhouettes", or (2, 3) array_like
+        Carving box.  "auto": a box the folder's README gives (Middlebury),
+        else "silhouettes": the box of the region inside every silhouette.
+    resolution : int
+        Carving voxels along the box's longest side.
+    background, threshold, min_area, photo_consistency, sweeps, keep_silhouettes
+        See :func:`o3drbf.photo.carve.carve`.
+    delta, tau, lambda_surface, exterior_ratio, surface_count
+        Reconstruction (see :func:`o3drbf.pipeline.reconstruct`).  Carved shells
+        are dense and nearly noise-free, so the defaults smooth less
+        (lambda 1e-4) and place one exterior constraint per two surface
+        constraints (the gaps between thin parts need them: the paper's
+        0.1 lets the surface bridge the temple's columns).
+    mesh_resolution : int
+        Marching-cubes cells along the longest side.
+    iou_stride : int
+        Check the silhouettes at every ``iou_stride``-th pixel.
+    images, cameras : optional
+        Images and cameras already in memory, instead of reading files.
+    **reconstruct_options
+        More :func:`o3drbf.pipeline.reconstruct` arguments (``exterior_ratio``,
+        ``lambda_surface``, ``solver``...).
+
+    Returns
+    -------
+    PhotosResult
+    """
+    from o3drbf.pipeline import reconstruct
+    from o3drbf.mesh.color import color_mesh
+    from o3drbf.mesh.metrics import mesh_report
+
+    from o3drbf.validation import check_number
+
+    iou_stride = check_number("iou_stride", iou_stride, low=1, integer=True)
+    stats: dict = {}
+    t0 = time.perf_counter()
+    if images is None or cameras is None:
+        images, cams, _ = _load(images_dir, calibration)
+        readme = readme_bounds(images_dir) if images_dir is not None else None
+    else:
+        cams = list(cameras)
+        images = [carving._as_rgb(im, f"image {i}") for i, im in enumerate(images)]
+        readme = None
+    stats["read_seconds"] = time.perf_counter() - t0
+
+    if isinstance(bounds, str):
+        if bounds not in ("auto", "silhouettes"):
+            raise ValueError(f"bounds must be 'auto', 'silhouettes' or six numbers, got {bounds!r}")
+        box = readme if bounds == "auto" else None
+        stats["bounds_source"] = "README" if box is not None else "silhouettes"
+    else:
+        box = carving._check_bounds(bounds)
+        stats["bounds_source"] = "given"
+
+    t0 = time.perf_counter()
+    masks = carving.silhouettes(images, background=background, threshold=threshold, min_area=min_area)
+    stats["segment_seconds"] = time.perf_counter() - t0
+    cv = carving.carve(
+        images,
+        cams,
+        bounds=box,
+        resolution=resolution,
+        masks=masks,
+        photo_consistency=photo_consistency,
+        sweeps=sweeps,
+        keep_silhouettes=keep_silhouettes,
+        progress=progress,
+    )
+    stats["carve"] = cv.stats
+    if len(cv.points) < 10:
+        raise ValueError(f"carving left {len(cv.points)} shell voxels; at least 10 needed (raise resolution or check bounds)")
+
+    t0 = time.perf_counter()
+    rec = reconstruct(
+        cv.points,
+        cameras=cams,
+        point_camera=cv.best_camera(),
+        outliers="largest",
+        outlier_radius=2.5 * cv.voxel_size,
+        delta=delta,
+        tau=tau,
+        lambda_surface=lambda_surface,
+        exterior_ratio=exterior_ratio,
+        surface_count=surface_count,
+        resolution=mesh_resolution,
+        bounds=cv.bounds,
+        seed=seed,
+        progress=progress,
+        **reconstruct_options,
+    )
+    stats["reconstruct_seconds"] = time.perf_counter() - t0
+    stats["reconstruct"] = rec.stats
+
+    mesh, dropped = largest_component(rec.mesh)
+    stats["mesh_pieces_dropped"] = dropped
+    t0 = time.perf_counter()
+    mesh = color_mesh(mesh, cameras=cams, images=images, points=cv.points, colors=cv.colors)
+    stats["color_seconds"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    box_used = cv.bounds
+    inside = carving.box_masks(box_used, cams)
+    hits = carving.mesh_masks(mesh, cams, stride=iou_stride)
+    st = slice(None, None, iou_stride)
+    iou = carving.mask_iou(hits, [(m & b)[st, st] for m, b in zip(masks, inside)])
+    iou_raw = carving.mask_iou(hits, [m[st, st] for m in masks])
+    stats["iou_seconds"] = time.perf_counter() - t0
+    rep = mesh_report(mesh)
+    stats["watertight"] = bool(rep["watertight"])
+    stats["components"] = rep["components"]
+    stats["triangles"] = len(mesh.triangles)
+    stats["vertices"] = len(mesh.vertices)
+    return PhotosResult(mesh, cams, images, masks, cv, rec, iou, iou_raw, stats)
+
+
+def largest_component(mesh):
+    """The mesh's largest connected piece (by triangles), and how many pieces were dropped."""
+    import open3d as o3d
+
+    if len(mesh.triangles) == 0:
+        return mesh, 0
+    labels, counts, _ = mesh.cluster_connected_triangles()
+    labels = np.asarray(labels)
+    if len(counts) <= 1:
+        return mesh, 0
+    out = o3d.geometry.TriangleMesh(mesh)
+    out.remove_triangles_by_mask(labels != int(np.argmax(counts)))
+    out.remove_unreferenced_vertices()
+    return out, len(counts) - 1
+
+
+# -- picture ------------------------------------------------------------------
+
+
+def render_model(mesh, camera, lighting: bool = False) -> np.ndarray:
+    """Render a coloured mesh offscreen from a calibrated camera with PyVista.
+
+    Returns
+    -------
+    (H, W, 3) uint8 array
+    """
+    from o3drbf.pictures import _headless, to_pyvista
+
+    _headless()
+    import pyvista as pv
+
+    W, H = camera.width, camera.height
+    plotter = pv.Plotter(off_screen=True, window_size=[W, H])
+    plotter.set_background("black")
+    poly = to_pyvista(mesh)
+    if mesh.has_vertex_colors():
+        rgb = (np.clip(np.asarray(mesh.vertex_colors), 0, 1) * 255).astype(np.uint8)
+        plotter.add_mesh(poly, scalars=rgb, rgb=True, lighting=lighting)
+    else:
+        plotter.add_mesh(poly, color="#c8d2e6", lighting=True)
+    K, R = camera.K, camera.R
+    c = camera.center
+    cam = plotter.camera
+    cam.position = tuple(c)
+    cam.focal_point = tuple(c + R[2])
+    cam.up = tuple(-R[1])
+    cam.view_angle = math.degrees(2 * math.atan(0.5 * H / K[1, 1]))
+    # principal point away from the image centre: shift the projection
+    cam.SetWindowCenter(-(K[0, 2] - 0.5 * W) / (0.5 * W), (K[1, 2] - 0.5 * H) / (0.5 * H))
+    depth = np.linalg.norm(np.asarray(mesh.vertices) - c, axis=1)
+    cam.clipping_range = (max(1e-6, 0.5 * float(depth.min())), 2.0 * float(depth.max()))
+    img = plotter.screenshot(return_img=True)
+    plotter.close()
+    return np.asarray(img)[:, :, :3]
+
+
+def picture(mesh, camera, photo, path, lighting: bool = False) -> Path:
+    """The input photograph and the coloured model from the same camera, side by side (PNG).
+
+    Parameters
+    ----------
+    mesh : open3d.geometry.TriangleMesh
+        With vertex colours.
+    camera : Camera
+        Pinhole camera with width and height.
+    photo : (H, W, 3) array
+        The photograph taken by ``camera``.
+    path : path-like
+        Output ``.png``, written atomically.
+    """
+    import skimage.io
+
+    from o3drbf.io.files import atomic_path
+
+    path = Path(path)
+    if path.suffix.lower() != ".png":
+        raise ValueError(f"picture must be a .png file, got {str(path)!r}")
+    if not (path.parent if str(path.parent) else Path(".")).is_dir():
+        raise FileNotFoundError(f"output folder does not exist: {path.parent}")
+    render = render_model(mesh, camera, lighting=lighting)
+    photo8 = (np.clip(carving._as_rgb(photo, "photo"), 0, 1) * 255).round().astype(np.uint8)
+    gap = np.full((photo8.shape[0], 8, 3), 255, dtype=np.uint8)
+    panel = np.concatenate([photo8, gap, render], axis=1)
+    with atomic_path(path) as tmp:
+        skimage.io.imsave(tmp, panel, check_contrast=False)
+    return path
+
+
+# -- command line ---------------------------------------------------------------
+
+
+def _bounds_arg(text: str):
+    if text in ("auto", "silhouettes"):
+        return text
+    parts = text.replace(",", " ").split()
+    try:
+        vals = [float(s) for s in parts]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected 'auto', 'silhouettes' or six numbers 'xmin ymin zmin xmax ymax zmax', got {text!r}") from None
+    if len(vals) != 6:
+        raise argparse.ArgumentTypeError(f"expected six numbers 'xmin ymin zmin xmax ymax zmax', got {len(vals)}")
+    return vals
+
+
+def _colour_arg(text: str):
+    parts = text.replace(",", " ").split()
+    try:
+        vals = [float(s) for s in parts]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an RGB colour 'r,g,b' in [0, 1], got {text!r}") from None
+    if len(vals) != 3 or min(vals) < 0 or max(vals) > 1:
+        raise argparse.ArgumentTypeError(f"expected an RGB colour 'r,g,b' with components in [0, 1], got {text!r}")
+    return vals
+
+
+def add_photos_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The ``o3drbf photos`` arguments."""
+    d = carving.DEFAULTS
+    parser.add_argument("images", help="folder of the calibrated photographs")
+    parser.add_argument("--calibration", metavar="FILE", default=None,
+                        help="camera file or folder: Middlebury *_par.txt, Bundler bundle.out (with its list), COLMAP text model (default: found in the image folder)")
+    parser.add_argument("-o", "--output", required=True, help="output mesh (.ply, .obj, .off, .gltf, .glb; PLY keeps the vertex colours)")
+    g = parser.add_argument_group("carving")
+    g.add_argument("--bounds", type=_bounds_arg, default="auto",
+                   help="carving box 'xmin ymin zmin xmax ymax zmax', 'silhouettes' (the box of the region inside every silhouette) "
+                   "or 'auto' (a Middlebury README's box if the folder has one, else silhouettes; default)")
+    g.add_argument("--voxels", type=int, default=d["resolution"], help="voxels along the box's longest side (default %(default)s)")
+    g.add_argument("--background", type=_colour_arg, default=list(d["background"]), help="background colour r,g,b in [0, 1] (default black)")
+    g.add_argument("--threshold", type=float, default=d["threshold"], help="foreground: largest channel difference from the background above this (default %(default)s)")
+    g.add_argument("--min-area", type=int, default=d["min_area"], help="silhouette specks and holes up to this many pixels are cleaned (default %(default)s)")
+    g.add_argument("--photo-consistency", type=float, default=d["photo_consistency"],
+                   help="carve surface voxels whose colour spread (RMS std, colours in [0, 1]) across the cameras that see them exceeds this; 0 keeps the visual hull (default %(default)s)")
+    g.add_argument("--sweeps", type=int, default=d["sweeps"], help="photo-consistency sweeps (default %(default)s)")
+    g.add_argument("--carve-outline", action="store_true", help="let photo-consistency carve voxels on the silhouettes' outline too (shrinks the silhouettes)")
+    g = parser.add_argument_group("surface")
+    g.add_argument("--delta", type=float, default=PHOTO_DEFAULTS["delta"], help="multi-order basis delta (default %(default)s)")
+    g.add_argument("--tau", type=float, default=PHOTO_DEFAULTS["tau"], help="multi-order basis tau (default %(default)s)")
+    g.add_argument("--lambda-surface", type=float, default=PHOTO_DEFAULTS["lambda_surface"], help="smoothing of the surface constraints; carved shells are nearly noise-free (default %(default)s)")
+    g.add_argument("--exterior-ratio", type=float, default=PHOTO_DEFAULTS["exterior_ratio"], help="exterior constraints per surface constraint (default %(default)s)")
+    g.add_argument("--surface-count", type=int, default=PHOTO_DEFAULTS["surface_count"], help="surface constraints (default %(default)s)")
+    g.add_argument("--resolution", type=int, default=PHOTO_DEFAULTS["mesh_resolution"], help="marching-cubes cells along the longest side (default %(default)s)")
+    g = parser.add_argument_group("output")
+    g.add_argument("--picture", metavar="PNG", default=None, help="also write the input photo and the coloured model from the same camera, side by side")
+    g.add_argument("--picture-camera", default="0", help="camera for --picture: index or image name (default %(default)s)")
+    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("-q", "--quiet", action="store_true", help="no progress bars or summary")
+    g.add_argument("-v", "--verbose", action="store_true", help="log each step")
+    return parser
+
+
+def _camera_index(spec: str, cameras) -> int:
+    names = [c.name for c in cameras]
+    if spec in names:
+        return names.index(spec)
+    try:
+        i = int(spec)
+    except ValueError:
+        raise ValueError(f"--picture-camera {spec!r} is neither an index 0..{len(cameras) - 1} nor an image name ({', '.join(names[:3])}, ...)") from None
+    if not 0 <= i < len(cameras):
+        raise ValueError(f"--picture-camera {i} is out of range; valid: 0..{len(cameras) - 1}")
+    return i
+
+
+def main_photos(args: argparse.Namespace) -> int:
+    """Run ``o3drbf photos``; returns the exit status."""
+    from o3drbf.io import files as io
+
+    t_start = time.perf_counter()
+    out = io.check_output(args.output)
+    if args.picture:
+        pic = Path(args.picture)
+        if pic.suffix.lower() != ".png":
+            raise ValueError(f"--picture must be a .png file, got {args.picture!r}")
+    res = run_photos(
+        args.images,
+        args.calibration,
+        bounds=args.bounds,
+        resolution=args.voxels,
+        background=args.background,
+        threshold=args.threshold,
+        min_area=args.min_area,
+        photo_consistency=args.photo_consistency or None,
+        sweeps=args.sweeps,
+        keep_silhouettes=not args.carve_outline,
+        delta=args.delta,
+        tau=args.tau,
+        lambda_surface=args.lambda_surface,
+        exterior_ratio=args.exterior_ratio,
+        surface_count=args.surface_count,
+        mesh_resolution=args.resolution,
+        seed=args.seed,
+        progress=not args.quiet,
+    )
+    k = _camera_index(args.picture_camera, res.cameras) if args.picture else None
+    io.write_mesh(out, res.mesh)
+    t_pic = 0.0
+    if args.picture:
+        t0 = time.perf_counter()
+        picture(res.mesh, res.cameras[k], res.images[k], args.picture)
+        t_pic = time.perf_counter() - t0
+    res.stats["picture_seconds"] = t_pic
+    if not args.quiet:
+        print(summary(res, args.images, out, args.picture, time.perf_counter() - t_start))
+    return 0
+
+
+def summary(res: PhotosResult, images_dir, output, picture_path=None, seconds=None) -> str:
+    """Per-stage summary of :func:`run_photos`."""
+    s, c, r = res.stats, res.carve.stats, res.reconstruction.stats
+    cam0 = res.cameras[0]
+    worst = int(np.argmin(res.iou))
+    lines = [
+        f"o3drbf photos: {images_dir} -> {output}",
+        f"  read         {len(res.cameras)} calibrated images, {cam0.width}x{cam0.height} ({s['read_seconds']:.1f} s)",
+        f"  silhouettes  foreground {100 * np.mean(c['silhouette_fraction']):.1f}% of pixels on average ({s['segment_seconds']:.1f} s)",
+        f"  carve        box from {s['bounds_source']}, grid {'x'.join(map(str, c['grid']))} = {c['voxels']:,} voxels of {c['voxel_size']:.4g}; "
+        f"{c['silhouette_carved']:,} carved by silhouettes, {c['photo_carved']:,} by photo-consistency "
+        f"({c['photo_protected']:,} kept on the outline) ({c['hull_seconds'] + c['photo_seconds']:.1f} s)",
+        f"  shell        {c['shell_voxels']:,} surface voxels, seen by {c['shell_views_mean']:.1f} cameras on average, "
+        f"{c['shell_unseen']:,} by none ({c['shell_seconds']:.1f} s)",
+        f"  constraints  {r['surface_constraints']:,} surface, {r['exterior_constraints']:,} exterior, {r['sphere_constraints']:,} sphere; "
+        f"{r['outliers_removed']:,} outlying voxels removed",
+        f"  fit          {r['solver']}, relative residual {r['residual']:.1e} ({r['solve_seconds']:.1f} s); mesh extracted in {r['extract_seconds']:.1f} s",
+        f"  mesh         {s['triangles']:,} triangles, {s['vertices']:,} vertices, watertight {'yes' if s['watertight'] else 'NO'}, "
+        f"{s['components']} component(s) ({s['mesh_pieces_dropped']} small piece(s) dropped); coloured in {s['color_seconds']:.1f} s",
+        f"  check        silhouette IoU per image min {res.iou.min():.3f} ({res.cameras[worst].name}), mean {res.iou.mean():.3f} "
+        f"(raw segmentation: min {res.iou_raw.min():.3f}, mean {res.iou_raw.mean():.3f}) ({s['iou_seconds']:.1f} s)",
+    ]
+    if picture_path:
+        lines.append(f"  picture      {picture_path} ({s.get('picture_seconds', 0):.1f} s)")
+    if seconds is not None:
+        lines.append(f"  total time   {seconds:.1f} s")
+    return "\n".join(lines)

@@ -1,0 +1,221 @@
+"""Outlier removal before fitting: connected components and statistics.
+
+Stray points far from the object would each pull the implicit surface
+toward them.  The paper keeps the largest connected component (or the n
+largest) of the points, neighbours being points within a radius, or voxels
+in each other's 26-neighbourhood (method.md section 5).  Open3D's
+statistical outlier removal is offered as well.
+
+Every function returns the indices it keeps (sorted) and an
+:class:`OutlierReport` of what it removed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import sparse
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from o3drbf.validation import as_points, check_number
+
+__all__ = ["OutlierReport", "largest_components", "voxel_components", "statistical_outliers"]
+
+
+@dataclass(frozen=True, eq=False)
+class OutlierReport:
+    """What an outlier filter removed.
+
+    Attributes
+    ----------
+    method : str
+    total : int
+        Input count.
+    kept : int
+    removed_indices : (R,) int array
+        Sorted indices of the removed inputs.
+    components : int or None
+        Number of connected components (component filters).
+    kept_sizes : list of int
+        Sizes of the kept components, largest first.
+    largest_removed : int
+        Size of the largest removed component (0 if none).
+    parameters : dict
+    """
+
+    method: str
+    total: int
+    kept: int
+    removed_indices: np.ndarray
+    components: int | None = None
+    kept_sizes: list = field(default_factory=list)
+    largest_removed: int = 0
+    parameters: dict = field(default_factory=dict)
+
+    @property
+    def removed(self) -> int:
+        return int(len(self.removed_indices))
+
+    def __str__(self) -> str:
+        params = ", ".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in self.parameters.items())
+        text = f"{self.method}({params}): kept {self.kept} of {self.total}, removed {self.removed}"
+        if self.components is not None:
+            text += (
+                f"; {self.components} component(s), kept sizes {self.kept_sizes}, "
+                f"largest removed component {self.largest_removed}"
+            )
+        return text
+
+
+def _keep_largest(labels: np.ndarray, n_components: int, keep: int, method: str, parameters: dict):
+    """Indices in the ``keep`` largest components (ties: the one with the lowest index first)."""
+    sizes = np.bincount(labels, minlength=n_components)
+    first = np.full(n_components, len(labels), dtype=np.int64)
+    np.minimum.at(first, labels, np.arange(len(labels)))
+    order = np.lexsort((first, -sizes))  # largest first, then earliest
+    chosen = order[:keep]
+    mask = np.isin(labels, chosen)
+    kept = np.flatnonzero(mask)
+    report = OutlierReport(
+        method=method,
+        total=len(labels),
+        kept=len(kept),
+        removed_indices=np.flatnonzero(~mask),
+        components=int(n_components),
+        kept_sizes=[int(sizes[c]) for c in chosen],
+        largest_removed=int(sizes[order[keep]]) if n_components > keep else 0,
+        parameters=parameters,
+    )
+    return kept, report
+
+
+def largest_components(points, radius: float, keep: int = 1):
+    """Keep the ``keep`` largest connected components of the points.
+
+    Two points are connected when they are within ``radius`` of each other
+    (single linkage: a component is everything reachable in such steps).
+
+    Parameters
+    ----------
+    points : (N, 3) array_like
+    radius : float
+        Neighbourhood radius (> 0), e.g. two or three mean spacings.
+    keep : int
+        How many components to keep (>= 1), largest first; ties go to the
+        component holding the lower point index.
+
+    Returns
+    -------
+    kept : (K,) int array
+        Sorted indices of the kept points.
+    report : OutlierReport
+    """
+    pts = as_points(points)
+    radius = check_number("radius", radius, low=0.0, low_open=True)
+    keep = check_number("keep", keep, low=1, integer=True)
+    n = len(pts)
+    pairs = cKDTree(pts).query_pairs(radius, output_type="ndarray")
+    graph = sparse.coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    count, labels = connected_components(graph, directed=False)
+    return _keep_largest(labels, count, keep, "largest_components", {"radius": radius, "keep": keep})
+
+
+# The 13 offsets of one half of the 26-neighbourhood (the other half by symmetry).
+_HALF_26 = np.array([o for o in np.ndindex(3, 3, 3) if o > (1, 1, 1)], dtype=np.int64) - 1
+
+
+def voxel_components(voxels, keep: int = 1):
+    """Keep the ``keep`` largest 26-connected components of occupied voxels.
+
+    Parameters
+    ----------
+    voxels : (V, 3) int array_like
+        Integer indices of the occupied voxels (e.g. ``np.argwhere(occupancy)``);
+        duplicates count once per row.
+    keep : int
+        How many components to keep (>= 1), largest (in voxels) first.
+
+    Returns
+    -------
+    kept : (K,) int array
+        Sorted row indices of the kept voxels.
+    report : OutlierReport
+    """
+    try:
+        ijk = np.asarray(voxels)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"voxels must be a (V, 3) integer array: {exc}") from None
+    if ijk.ndim != 2 or ijk.shape[1] != 3:
+        raise ValueError(f"voxels must have shape (V, 3), got {ijk.shape}")
+    if len(ijk) == 0:
+        raise ValueError("voxels is empty: the grid has no occupied voxel")
+    if not np.issubdtype(ijk.dtype, np.integer):
+        if not np.issubdtype(ijk.dtype, np.number) or not np.isfinite(ijk).all() or (ijk != np.round(ijk)).any():
+            raise ValueError("voxels must hold integer voxel indices")
+        ijk = ijk.astype(np.int64)
+    keep = check_number("keep", keep, low=1, integer=True)
+    ijk = ijk.astype(np.int64) - ijk.min(axis=0) + 1
+    dims = ijk.max(axis=0) + 2
+    key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+    order = np.argsort(key, kind="stable")
+    skey = key[order]
+    rows, cols = [], []
+    # Duplicated voxels are connected to each other.
+    dup = np.flatnonzero(skey[1:] == skey[:-1])
+    rows.append(order[dup])
+    cols.append(order[dup + 1])
+    for o in _HALF_26:
+        nkey = key + (o[0] * dims[1] + o[1]) * dims[2] + o[2]
+        pos = np.minimum(np.searchsorted(skey, nkey), len(skey) - 1)
+        hit = skey[pos] == nkey
+        rows.append(np.flatnonzero(hit))
+        cols.append(order[pos[hit]])
+    r = np.concatenate(rows)
+    c = np.concatenate(cols)
+    n = len(ijk)
+    graph = sparse.coo_matrix((np.ones(len(r), dtype=np.int8), (r, c)), shape=(n, n))
+    count, labels = connected_components(graph, directed=False)
+    return _keep_largest(labels, count, keep, "voxel_components", {"keep": keep})
+
+
+def statistical_outliers(points, nb_neighbors: int = 20, std_ratio: float = 2.0):
+    """Open3D's statistical outlier removal.
+
+    A point is removed when its mean distance to its ``nb_neighbors``
+    nearest neighbours exceeds the global mean of that quantity by more than
+    ``std_ratio`` standard deviations.
+
+    Parameters
+    ----------
+    points : (N, 3) array_like
+    nb_neighbors : int
+        Neighbours per point (>= 1).
+    std_ratio : float
+        Threshold in standard deviations (> 0); smaller removes more.
+
+    Returns
+    -------
+    kept : (K,) int array
+        Sorted indices of the kept points.
+    report : OutlierReport
+    """
+    import open3d as o3d
+
+    pts = as_points(points, min_count=2)
+    nb_neighbors = check_number("nb_neighbors", nb_neighbors, low=1, integer=True)
+    std_ratio = check_number("std_ratio", std_ratio, low=0.0, low_open=True)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    _, index = pcd.remove_statistical_outlier(nb_neighbors=nb_neighbors, std_ratio=std_ratio)
+    kept = np.sort(np.asarray(index, dtype=np.int64))
+    mask = np.ones(len(pts), dtype=bool)
+    mask[kept] = False
+    report = OutlierReport(
+        method="statistical_outliers",
+        total=len(pts),
+        kept=len(kept),
+        removed_indices=np.flatnonzero(mask),
+        parameters={"nb_neighbors": nb_neighbors, "std_ratio": std_ratio},
+    )
+    return kept, report

@@ -1,0 +1,103 @@
+"""What every solver shares: the solution record, the convergence warning,
+memory accounting and the residual of the regularized system."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from o3drbf.rbf.sums import kernel_sum
+
+__all__ = ["Solution", "ConvergenceWarning", "available_memory", "dense_memory", "relative_residual", "gigabytes"]
+
+
+class ConvergenceWarning(UserWarning):
+    """An iterative solve stopped before reaching its tolerance."""
+
+
+@dataclass
+class Solution:
+    """Weights, polynomial coefficients and a record of how they were found.
+
+    Attributes
+    ----------
+    weights : (N,) ndarray
+        RBF weights w.
+    poly : (M,) ndarray
+        Polynomial coefficients p.
+    method : str
+        "dense", "iterative" or "fast".
+    residual : float
+        Relative residual of the saddle-point system.
+    seconds : float
+        Wall time of the solve.
+    iterations : int
+        Krylov iterations (0 for dense).
+    info : dict
+        Solver-specific record (factorization, preconditioner, split).
+    """
+
+    weights: np.ndarray
+    poly: np.ndarray
+    method: str
+    residual: float
+    seconds: float
+    iterations: int = 0
+    info: dict = field(default_factory=dict)
+
+
+def available_memory() -> int:
+    """Bytes this process can still allocate.
+
+    The smaller of the machine's available memory (psutil), the address-space
+    limit (RLIMIT_AS) less what the process already maps, and a cgroup limit
+    less its usage.
+    """
+    import psutil
+
+    avail = int(psutil.virtual_memory().available)
+    try:
+        import resource
+
+        soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+        if soft not in (resource.RLIM_INFINITY, -1):
+            avail = min(avail, max(0, int(soft) - int(psutil.Process().memory_info().vms)))
+    except (ImportError, OSError, ValueError):
+        pass
+    for limit_file, usage_file in (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
+                                   ("/sys/fs/cgroup/memory/memory.limit_in_bytes", "/sys/fs/cgroup/memory/memory.usage_in_bytes")):
+        try:
+            with open(limit_file) as fh:
+                text = fh.read().strip()
+            if text == "max":
+                continue
+            with open(usage_file) as fh:
+                used = int(fh.read().strip())
+            limit = int(text)
+            if limit < 2**60:
+                avail = min(avail, max(0, limit - used))
+        except (OSError, ValueError):
+            continue
+    return avail
+
+
+def dense_memory(n: int) -> int:
+    """Peak bytes of a dense solve of ``n`` constraints (the matrix, factored in place, plus slack)."""
+    return int(8 * (n + 4) ** 2 * 1.1 + 64 * n)
+
+
+def gigabytes(x: float) -> str:
+    """``x`` bytes as ``"1.2 GB"``."""
+    return f"{x / 2**30:.1f} GB"
+
+
+def relative_residual(kernel, centres, y, lam, q, w, p) -> float:
+    """|| [Phi w + lambda w + Q p - y ; Q^T w] || / ||y|| (matrix-free)."""
+    r1 = kernel_sum(kernel, centres, w, centres) + lam * w + q @ p - y
+    r2 = q.T @ w
+    denom = max(float(np.linalg.norm(y)), np.finfo(float).tiny)
+    return float(math.sqrt(float(r1 @ r1 + r2 @ r2)) / denom)
+
+
