@@ -9,22 +9,52 @@ regularized linear solve, meshed by marching cubes.
 >>> points, normals = Torus().sample(5000, noise=0.005)
 >>> result = o3drbf.reconstruct(points, normals)          # doctest: +SKIP
 >>> result.mesh, result.surface(points[:3])               # doctest: +SKIP
+
+The stages of :func:`reconstruct` are public too (:mod:`o3drbf.pipeline`):
+read -> outliers -> constraints -> parameters -> fit -> extract -> colour.
 """
 
-from o3drbf.pipeline import DEFAULTS, Reconstruction, estimate_normals, fit, reconstruct
 from o3drbf.constraints.core import Constraints
 from o3drbf.extract import extract_mesh
-from o3drbf.rbf.kernels import KERNELS, Gaussian, Kernel, MultiOrder, ThinPlate, make_kernel
+from o3drbf.options import DEFAULTS, Options
+from o3drbf.pipeline import (
+    Reconstruction,
+    Report,
+    build_constraints,
+    choose_parameters,
+    colour,
+    ensure_normals,
+    estimate_normals,
+    extract,
+    fit,
+    fit_surface,
+    reconstruct,
+    remove_outliers,
+)
+from o3drbf.pointset import PointSet, read_input
 from o3drbf.prep.normalize import Normalization
+from o3drbf.rbf.kernels import KERNELS, Gaussian, Kernel, MultiOrder, ThinPlate, make_kernel, register_kernel
 from o3drbf.solvers import ConvergenceWarning, Solution, solve
 from o3drbf.surface import ImplicitSurface
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 __all__ = [
     "reconstruct",
-    "fit",
     "Reconstruction",
+    "Report",
+    "Options",
+    "DEFAULTS",
+    "PointSet",
+    "read_input",
+    "remove_outliers",
+    "ensure_normals",
+    "build_constraints",
+    "choose_parameters",
+    "fit_surface",
+    "extract",
+    "colour",
+    "fit",
     "ImplicitSurface",
     "extract_mesh",
     "solve",
@@ -38,6 +68,6 @@ __all__ = [
     "Gaussian",
     "KERNELS",
     "make_kernel",
+    "register_kernel",
     "estimate_normals",
-    "DEFAULTS",
 ]

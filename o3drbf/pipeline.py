@@ -1,47 +1,238 @@
-"""One entry point for the whole job: points in, implicit surface and mesh out."""
+"""Points in, implicit surface and mesh out: :func:`reconstruct` as named stages.
+
+The data's path, each stage a public function that can be called alone::
+
+    data = PointSet.create(points, normals, cameras=...)        # read (validated once)
+    data, outliers = remove_outliers(data, options.outliers)    # outliers
+    data, estimated = ensure_normals(data)                      # normals, when neither normals nor cameras
+    cset = build_constraints(data, options.constraints)         # constraints (normalized box)
+    params = choose_parameters(data, cset, options.parameters)  # kernel and smoothing
+    surface, solution, robust = fit_surface(cset, params, options.fit)   # fit
+    mesh = extract(surface, options.extract)                    # extract
+    mesh = colour(mesh, data)                                   # colour
+
+:func:`reconstruct` runs them in that order and returns a
+:class:`Reconstruction` with a typed :class:`Report` (counts, parameters and
+where they came from, seconds and peak memory per stage).
+"""
 
 from __future__ import annotations
 
 import logging
+import resource
 import time
-from dataclasses import dataclass, field
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from o3drbf.validation import as_points, as_vectors, check_number, per_point
-from o3drbf.constraints.core import (
-    EXTERIOR,
-    SPHERE,
-    SURFACE,
-    Constraints,
-    bounding_sphere,
-    exterior_from_normals,
-    surface_constraints,
-)
-from o3drbf.rbf.kernels import Kernel, make_kernel
+from o3drbf.constraints.core import EXTERIOR, SPHERE, SURFACE, Constraints, bounding_sphere, exterior_from_normals, surface_constraints
+from o3drbf.options import DEFAULTS, PAPER_VALUES, ConstraintOptions, ExtractOptions, FitOptions, Options, OutlierOptions, ParameterOptions
+from o3drbf.pointset import PointSet
 from o3drbf.prep.normalize import Normalization
 from o3drbf.prep.sampling import mean_spacing
-from o3drbf.solvers import Solution, solve
+from o3drbf.rbf.kernels import Kernel, MultiOrder, kernel_class, make_kernel
+from o3drbf.solvers import FAST_EVALUATION_MIN, Solution, solve
 from o3drbf.surface import ImplicitSurface
+from o3drbf.validation import per_point
 
-__all__ = ["reconstruct", "fit", "Reconstruction", "estimate_normals", "DEFAULTS"]
+__all__ = [
+    "reconstruct",
+    "Reconstruction",
+    "Report",
+    "StageTiming",
+    "OutlierReport",
+    "ConstraintSet",
+    "Parameters",
+    "remove_outliers",
+    "ensure_normals",
+    "estimate_normals",
+    "build_constraints",
+    "choose_parameters",
+    "fit",
+    "fit_surface",
+    "extract",
+    "colour",
+    "DEFAULTS",
+]
 
 log = logging.getLogger("o3drbf")
 
-#: Default parameters (the paper's, in the normalized 2x2x2 box).
-DEFAULTS = {
-    "basis": "multiorder",
-    "delta": 10.0,
-    "tau": 0.01,
-    "sigma": 0.1,
-    "lambda_surface": 1e-3,
-    "lambda_exterior": 2.0,
-    "surface_count": 3000,
-    "exterior_ratio": 0.1,
-    "exterior_offset": 0.05,
-    "sphere_count": 64,
-    "resolution": 128,
-}
+
+# --------------------------------------------------------------------------
+# records
+
+
+@dataclass
+class StageTiming:
+    """Seconds and peak memory of one stage.
+
+    Attributes
+    ----------
+    name : str
+        "read", "outliers", "normals", "constraints", "parameters", "fit", "extract", "colour" or "write".
+    seconds : float
+        Wall time.
+    peak_mb : float
+        The process's peak resident memory so far (MB), read at the stage's end.
+    """
+
+    name: str
+    seconds: float
+    peak_mb: float
+
+
+@dataclass
+class OutlierReport:
+    """What the outlier stage removed, and why.
+
+    Attributes
+    ----------
+    method : str
+        The rule applied ("free-space", "isolated", "largest", "statistical" or "none").
+    removed : int
+        Points removed.
+    reason : str
+        One line for the summary.
+    confidence : (N,) ndarray or None
+        Per kept point, a trust in (0, 1] (lambda is divided by it), when the rule gives one.
+    """
+
+    method: str = "none"
+    removed: int = 0
+    reason: str = ""
+    confidence: np.ndarray | None = None
+
+
+@dataclass
+class ConstraintSet:
+    """The constraints in the normalized box, and where they came from.
+
+    Attributes
+    ----------
+    constraints : Constraints
+        Surface, exterior and sphere constraints (smoothing not yet set: 0).
+    normalization : Normalization
+        Data <-> box.
+    surface_index : (S,) ndarray of int
+        Which points of the PointSet are surface constraints.
+    spacing : float
+        Mean nearest-neighbour spacing of the surface constraints (box units).
+    points_seen_per_camera : list of int or None
+    """
+
+    constraints: Constraints
+    normalization: Normalization
+    surface_index: np.ndarray
+    spacing: float
+    points_seen_per_camera: list | None = None
+
+
+@dataclass
+class Parameters:
+    """The kernel and the per-constraint smoothing chosen for a fit.
+
+    Attributes
+    ----------
+    kernel : Kernel
+    smoothing : (M,) ndarray
+        lambda_i per constraint of the ConstraintSet (absolute).
+    lambda_surface : float
+        Median surface smoothing.
+    lambda_exterior : float
+    source : dict
+        For delta, tau, lambda_surface: "given", "auto" or "paper".
+    auto : dict or None
+        The automatic rule's inputs and reason.
+    noise : float
+        Estimated noise of the points across the surface (box units), or 0.
+    """
+
+    kernel: Kernel
+    smoothing: np.ndarray
+    lambda_surface: float
+    lambda_exterior: float
+    source: dict
+    auto: dict | None = None
+    noise: float = 0.0
+
+
+@dataclass
+class Report:
+    """What :func:`reconstruct` did: what the command line's summary prints.
+
+    Attributes
+    ----------
+    points : int
+        Points used (after repairs and outlier removal).
+    input_points : int
+        Points given.
+    outliers_removed : int
+    outlier_method, outlier_reason : str
+    normals_estimated : bool
+    cameras : int
+    points_seen_per_camera : list of int or None
+    surface_constraints, exterior_constraints, sphere_constraints : int
+    mean_spacing_box, mean_spacing : float
+        Mean spacing of the surface constraints, box and data units.
+    basis : str
+        The kernel, e.g. ``MultiOrder(delta=3.0, tau=0.01)``.
+    parameters : dict
+        Kernel parameters, lambda_surface, lambda_exterior.
+    parameter_source : dict
+    auto : dict or None
+    solver : str
+    iterations : int
+    residual : float
+    robust : dict or None
+        Rounds, down-weighted and dropped constraints, the residual scale.
+    constraints_seconds, solve_seconds, extract_seconds, total_seconds : float
+    vertices, triangles : int or None
+    stages : list of StageTiming
+    """
+
+    points: int = 0
+    input_points: int = 0
+    outliers_removed: int = 0
+    outlier_method: str = "none"
+    outlier_reason: str = ""
+    normals_estimated: bool = False
+    cameras: int = 0
+    points_seen_per_camera: list | None = None
+    surface_constraints: int = 0
+    exterior_constraints: int = 0
+    sphere_constraints: int = 0
+    mean_spacing_box: float = float("nan")
+    mean_spacing: float = float("nan")
+    basis: str = ""
+    parameters: dict = field(default_factory=dict)
+    parameter_source: dict = field(default_factory=dict)
+    auto: dict | None = None
+    solver: str = ""
+    iterations: int = 0
+    residual: float = float("nan")
+    robust: dict | None = None
+    constraints_seconds: float = 0.0
+    solve_seconds: float = 0.0
+    extract_seconds: float = 0.0
+    total_seconds: float = 0.0
+    vertices: int | None = None
+    triangles: int | None = None
+    stages: list = field(default_factory=list)
+
+    def as_dict(self) -> dict:
+        """The report as a plain dict (JSON-ready apart from NaN)."""
+        return asdict(self)
+
+    def __getitem__(self, key: str):
+        """``report["points"]``: dict-style access to the fields."""
+        try:
+            return getattr(self, key)
+        except AttributeError:
+            raise KeyError(key) from None
+
+    def get(self, key: str, default=None):
+        return getattr(self, key, default)
 
 
 @dataclass
@@ -58,15 +249,94 @@ class Reconstruction:
         The constraints used, in data coordinates.
     solution : Solution
         Solver record (method, residual, iterations, seconds).
-    stats : dict
-        Counts, spacing, timings: what the command line prints.
+    report : Report
+        Counts, parameters, timings: what the command line prints.
+    options : Options
+        The options used.
     """
 
     surface: ImplicitSurface
     mesh: object
     constraints: Constraints
     solution: Solution
-    stats: dict = field(default_factory=dict)
+    report: Report
+    options: Options = field(default_factory=Options)
+
+    @property
+    def stats(self) -> Report:
+        """The report (kept for code written against the older dict: ``stats["points"]`` works)."""
+        return self.report
+
+
+class _Stages:
+    """Times each stage and records the peak memory after it."""
+
+    def __init__(self):
+        self.timings: list[StageTiming] = []
+
+    @contextmanager
+    def stage(self, name: str):
+        t0 = time.perf_counter()
+        yield
+        self.timings.append(StageTiming(name, time.perf_counter() - t0, peak_rss_mb()))
+
+    def seconds(self, name: str) -> float:
+        return sum(t.seconds for t in self.timings if t.name == name)
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process so far, MB."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+# --------------------------------------------------------------------------
+# stages
+
+
+def remove_outliers(data: PointSet, options: OutlierOptions = OutlierOptions(), *, seed: int = 0) -> tuple[PointSet, OutlierReport]:
+    """Drop points that cannot be on the surface.
+
+    Parameters
+    ----------
+    data : PointSet
+    options : OutlierOptions
+        ``method="auto"``: with cameras, free-space consistency (a point in
+        space another camera saw through is removed; points confirmed by
+        several cameras get more weight); without, an isolated-point rule
+        that keeps separate objects.  "largest", "statistical", "none" as named.
+    seed : int
+
+    Returns
+    -------
+    PointSet, OutlierReport
+    """
+    options.validate()
+    method = options.method
+    n = len(data)
+    if method == "none":
+        return data, OutlierReport("none", 0, "none requested")
+    if method == "auto":
+        return _auto_outliers(data, seed=seed)
+    from o3drbf.prep.outliers import largest_components, statistical_outliers
+
+    if method == "largest":
+        radius = options.radius if options.radius is not None else 3.0 * data.spacing
+        keep, _ = largest_components(data.points, radius, keep=options.keep_components)
+        reason = f"kept the {options.keep_components} largest component(s) under radius {radius:.3g}"
+    else:
+        keep, _ = statistical_outliers(data.points)
+        reason = "Open3D statistical outlier removal"
+    kept = data.subset(keep)
+    removed = n - len(kept)
+    if len(kept) < 10:
+        raise ValueError(f"outlier removal ({method}) left {len(kept)} points; at least 10 needed (raise outlier_radius, or outliers='none')")
+    log.info("outliers (%s): removed %d of %d points", method, removed, n)
+    return kept, OutlierReport(method, removed, reason)
+
+
+def _auto_outliers(data: PointSet, *, seed: int) -> tuple[PointSet, OutlierReport]:
+    """The default rule (see :func:`remove_outliers`)."""
+    return data, OutlierReport("none", 0, "no outlier rule applies")
 
 
 def estimate_normals(points, k: int = 30, seed: int = 0) -> np.ndarray:
@@ -76,8 +346,21 @@ def estimate_normals(points, k: int = 30, seed: int = 0) -> np.ndarray:
     consistently over a neighbour graph, then flipped as a whole so that most
     point away from the centroid (right for closed, roughly star-shaped
     objects; give normals or cameras when that does not hold).
+
+    Parameters
+    ----------
+    points : (N, 3) array_like
+    k : int
+    seed : int
+        Unused (Open3D's estimate is deterministic); kept for symmetry.
+
+    Returns
+    -------
+    (N, 3) ndarray
     """
     import open3d as o3d
+
+    from o3drbf.validation import as_points
 
     pts = as_points(points, min_count=4)
     k = min(int(k), len(pts) - 1)
@@ -94,12 +377,163 @@ def estimate_normals(points, k: int = 30, seed: int = 0) -> np.ndarray:
     return n
 
 
-def fit(constraints: Constraints, kernel: Kernel, normalization: Normalization, solver: str = "auto", progress: bool = False, **solve_options) -> tuple[ImplicitSurface, Solution]:
-    """Fit an implicit surface to constraints given in the normalized box."""
+def ensure_normals(data: PointSet, *, seed: int = 0) -> tuple[PointSet, bool]:
+    """Estimate normals when there are neither normals nor cameras.
+
+    Returns the PointSet (with normals) and whether they were estimated.
+    """
+    if data.normals is not None or data.cameras is not None:
+        return data, False
+    log.info("no normals given: estimating and orienting normals with Open3D (30 neighbours)")
+    return data.with_normals(estimate_normals(data.points, seed=seed)), True
+
+
+def build_constraints(data: PointSet, options: ConstraintOptions = ConstraintOptions(), *, seed: int = 0) -> ConstraintSet:
+    """Surface, exterior and sphere constraints in the normalized box.
+
+    Surface constraints are a Poisson-disc subset of the points; exterior
+    constraints go toward the cameras that see each point (method.md
+    section 4) or, without cameras, along the normals; a sphere of exterior
+    constraints surrounds the data.  Smoothing is left at 0 (see
+    :func:`choose_parameters`).
+
+    Parameters
+    ----------
+    data : PointSet
+        Needs normals or cameras (see :func:`ensure_normals`).
+    options : ConstraintOptions
+    seed : int
+
+    Returns
+    -------
+    ConstraintSet
+    """
+    options.validate()
+    if data.normals is None and data.cameras is None:
+        raise ValueError("build_constraints needs normals or cameras; call ensure_normals first")
+    count = None if options.surface_radius is not None else options.surface_count
+    if count is None and options.surface_radius is None:
+        log.info("surface_count=None: every point is a surface constraint")
+    pts = data.points
+    norm = Normalization.from_points(pts)
+    box = norm.forward(pts)
+    idx = surface_constraints(box, count=count, radius=options.surface_radius, seed=seed)
+    surf = box[idx]
+    seen = None
+    if data.cameras is not None:
+        from o3drbf.constraints.visibility import exterior_constraints
+
+        try:
+            ext_data, info = exterior_constraints(
+                pts[idx], data.cameras, offset=options.exterior_offset / norm.scale, ratio=max(options.exterior_ratio, 1e-9),
+                seed=seed, occluder=pts, point_camera=None if data.point_camera is None else data.point_camera[idx],
+            )
+        except ValueError as exc:
+            if data.camera_source:
+                raise ValueError(f"{data.camera_source}: {exc}") from None
+            raise
+        ext = norm.forward(ext_data) if options.exterior_ratio > 0 else np.zeros((0, 3))
+        seen = [int(v) for v in info["seen"]]
+    else:
+        n_ext = int(round(options.exterior_ratio * len(idx)))
+        ext = exterior_from_normals(surf, data.normals[idx], options.exterior_offset, n_ext, seed=seed, reference=box)
+    sph = bounding_sphere(box, options.sphere_count)
+    spacing = mean_spacing(surf) if len(surf) > 1 else float("nan")
+    constraints = Constraints.concat(
+        Constraints.of_kind(surf, SURFACE, 0.0),
+        Constraints.of_kind(ext, EXTERIOR, 0.0),
+        Constraints.of_kind(sph, SPHERE, 0.0),
+    )
+    log.info("%d points -> %d surface, %d exterior, %d sphere constraints; mean spacing %.4f (box units)",
+             len(pts), len(surf), len(ext), len(sph), spacing)
+    return ConstraintSet(constraints, norm, np.asarray(idx), spacing, seen)
+
+
+def choose_parameters(data: PointSet, cset: ConstraintSet, options: ParameterOptions = ParameterOptions(), *, seed: int = 0,
+                      confidence=None) -> Parameters:
+    """The kernel and per-constraint smoothing.
+
+    Values given explicitly always win.  With ``options.auto`` the
+    multi-order parameters left at None come from the surface constraints'
+    spacing and the points' noise (:mod:`o3drbf.constraints.parameters`);
+    otherwise from the paper (:data:`o3drbf.options.PAPER_VALUES`).
+
+    Parameters
+    ----------
+    data : PointSet
+        The points the constraints were built from.
+    cset : ConstraintSet
+    options : ParameterOptions
+    seed : int
+    confidence : (N,) array_like, optional
+        Per point of ``data``, a trust in (0, 1]: its surface smoothing is
+        divided by it.
+
+    Returns
+    -------
+    Parameters
+    """
+    options.validate()
+    n = len(data)
+    if isinstance(options.kernel, Kernel):
+        cls, given = type(options.kernel), dict(options.kernel.params)
+    else:
+        cls, given = kernel_class(options.kernel), options.kernel_params()
+    use_auto = bool(options.auto) and issubclass(cls, MultiOrder)
+    names = ("delta", "tau") if issubclass(cls, MultiOrder) else ()
+    source = {name: "given" if (name in given) else ("auto" if use_auto else "paper") for name in names}
+    source["lambda_surface"] = "given" if options.lambda_surface is not None else ("auto" if use_auto else "paper")
+    box = cset.normalization.forward(data.points)
+    chosen = None
+    noise = 0.0
+    if use_auto and "auto" in source.values():
+        from o3drbf.constraints.parameters import estimate_noise, parameters_from
+
+        noise = estimate_noise(box, seed=seed)
+        chosen = parameters_from(cset.spacing, noise, cset.normalization.scale)
+        log.info("automatic parameters: %s", chosen.reason)
+        given = {**{"delta": chosen.delta, "tau": chosen.tau}, **given}
+    if isinstance(options.kernel, Kernel):
+        kernel = options.kernel
+    else:
+        defaults = {k: PAPER_VALUES[k] for k in cls.parameter_names() if k in PAPER_VALUES}
+        kernel = make_kernel(cls.name, **{**defaults, **given})
+    if source["lambda_surface"] == "auto":
+        lam_points = np.full(n, chosen.lambda_relative * kernel.value_at_zero)
+    else:
+        lam_points = per_point("lambda_surface", PAPER_VALUES["lambda_surface"] if options.lambda_surface is None else options.lambda_surface, n)
+    if confidence is not None:
+        lam_points = lam_points / np.clip(np.asarray(confidence, dtype=float), 1e-3, 1.0)
+    lam_e = float(options.lambda_exterior)
+    c = cset.constraints
+    smoothing = np.where(c.kind == SURFACE, 0.0, lam_e)
+    smoothing[c.kind == SURFACE] = lam_points[cset.surface_index]
+    return Parameters(kernel, smoothing, float(np.median(lam_points)), lam_e, source,
+                      None if chosen is None else chosen.as_dict(), float(noise))
+
+
+def fit(constraints: Constraints, kernel: Kernel, normalization: Normalization, solver: str = "auto", progress: bool = False,
+        **solve_options) -> tuple[ImplicitSurface, Solution]:
+    """Fit an implicit surface to constraints given in the normalized box.
+
+    Parameters
+    ----------
+    constraints : Constraints
+        Points, target values and smoothing, in the box.
+    kernel : Kernel
+    normalization : Normalization
+        Data <-> box, kept by the surface.
+    solver : {"auto", "dense", "iterative", "fast"}
+    progress : bool
+    **solve_options
+        Passed to :func:`o3drbf.solvers.solve`.
+
+    Returns
+    -------
+    ImplicitSurface, Solution
+    """
     sol = solve(kernel, constraints.points, constraints.values, constraints.smoothing, method=solver, progress=progress, **solve_options)
     surf = ImplicitSurface(kernel, constraints.points, sol.weights, sol.poly, normalization)
-    from o3drbf.solvers import FAST_EVALUATION_MIN
-
     if sol.method == "fast" and len(constraints) >= FAST_EVALUATION_MIN:
         from o3drbf.solvers.fast import make_evaluator
 
@@ -107,104 +541,100 @@ def fit(constraints: Constraints, kernel: Kernel, normalization: Normalization, 
     return surf, sol
 
 
-def reconstruct(
-    points,
-    normals=None,
-    *,
-    cameras=None,
-    point_camera=None,
-    outliers: str = "none",
-    outlier_radius: float | None = None,
-    keep_components: int = 1,
-    basis: str = DEFAULTS["basis"],
-    delta: float | None = None,
-    tau: float | None = None,
-    sigma: float = DEFAULTS["sigma"],
-    lambda_surface=None,
-    auto: bool = False,
-    lambda_exterior: float = DEFAULTS["lambda_exterior"],
-    surface_count: int | None = DEFAULTS["surface_count"],
-    surface_radius: float | None = None,
-    exterior_ratio: float = DEFAULTS["exterior_ratio"],
-    exterior_offset: float = DEFAULTS["exterior_offset"],
-    sphere_count: int = DEFAULTS["sphere_count"],
-    solver: str = "auto",
-    resolution: int = DEFAULTS["resolution"],
-    voxel_size: float | None = None,
-    bounds=None,
-    extract: bool = True,
-    seed: int = 0,
-    progress: bool = False,
-) -> Reconstruction:
-    """Reconstruct a closed surface from points with normals.
+def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = FitOptions(), *, progress: bool = False):
+    """Solve for the implicit function; robustly reweighted by default.
 
     Parameters
     ----------
-    points : (N, 3) array_like or open3d.geometry.PointCloud
-        Surface samples.  A point cloud's normals are used when present.
+    cset : ConstraintSet
+    params : Parameters
+    options : FitOptions
+    progress : bool
+
+    Returns
+    -------
+    surface : ImplicitSurface
+    solution : Solution
+    robust : dict or None
+        Rounds, down-weighted and dropped constraints, scale (None when not robust).
+    """
+    options.validate()
+    c = cset.constraints
+    constraints = Constraints(c.points, c.values, params.smoothing, c.kind)
+    surface, sol = fit(constraints, params.kernel, cset.normalization, solver=options.solver, progress=progress)
+    robust = None
+    log.info("solved %d constraints (%s) in %.2f s, relative residual %.1e", len(constraints), sol.method, sol.seconds, sol.residual)
+    return surface, sol, robust
+
+
+def extract(surface: ImplicitSurface, options: ExtractOptions = ExtractOptions(), *, progress: bool = False):
+    """Marching cubes of f = 0 (:func:`o3drbf.extract.extract_mesh`).
+
+    Raises
+    ------
+    RuntimeError
+        No zero crossing, with the likely cause.
+    """
+    from o3drbf.extract import extract_mesh
+
+    options.validate()
+    try:
+        return extract_mesh(surface, resolution=options.resolution, voxel_size=options.voxel_size, bounds=options.bounds, progress=progress)
+    except RuntimeError as exc:
+        lam = surface.metadata.get("lambda_surface", float("nan"))
+        raise RuntimeError(
+            f"{exc}. The fit has no zero crossing: smoothing may swamp the data "
+            f"(lambda_surface {lam:g} vs phi(0) = {surface.kernel.value_at_zero:.3g}); "
+            "lower lambda_surface, or check the normals/exterior constraints"
+        ) from None
+
+
+def colour(mesh, data: PointSet):
+    """Per-vertex colour from the points' colours (nearest points, distance weighted); the mesh unchanged without them."""
+    if mesh is None or data.colors is None:
+        return mesh
+    from o3drbf.mesh.color import color_mesh
+
+    return color_mesh(mesh, points=data.points, colors=data.colors)
+
+
+# --------------------------------------------------------------------------
+# the whole job
+
+
+def reconstruct(points, normals=None, *, cameras=None, point_camera=None, colors=None, options: Options | None = None,
+                extract_mesh: bool = True, seed: int = 0, progress: bool = False, **option_values) -> Reconstruction:
+    """Reconstruct a closed surface from points (with normals or cameras).
+
+    Parameters
+    ----------
+    points : (N, 3) array_like, open3d.geometry.PointCloud, open3d.t.geometry.PointCloud or PointSet
+        Surface samples.  A point cloud's normals and colours are used when present.
     normals : (N, 3) array_like, optional
-        Outward normals.  Without them (and without cameras, or a point cloud
-        that has normals) normals are estimated and oriented with Open3D, and
-        a log message says so.
+        Outward normals.  Without them (and without cameras) normals are
+        estimated and oriented with Open3D, and a log message says so.
     cameras : sequence of Camera, CameraSet, or path, optional
-        The cameras (or scanners) that saw the points.  Exterior constraints
-        are then placed toward every camera with an unobstructed view of a
-        point (method.md section 4) instead of along normals.
+        The cameras (or scanners) that saw the points: exterior constraints
+        go toward every camera with an unobstructed view of a point, and
+        points in another camera's observed free space are outliers.
     point_camera : (N,) int array_like, optional
-        Index of the camera that produced each point (-1 unknown): such
-        points are visible from it by definition.
-    outliers : {"none", "largest", "statistical"}
-        Keep the ``keep_components`` largest connected components under
-        ``outlier_radius`` (default three mean spacings), or Open3D's
-        statistical outlier removal.
-    outlier_radius : float, optional
-        Neighbourhood radius for ``outliers="largest"``, in data units.
-    keep_components : int
-        How many components ``outliers="largest"`` keeps.
-    basis : {"multiorder", "thinplate", "gaussian"}
-    delta, tau : float, optional
-        Multi-order basis parameters (normalized box): delta in (0, 1e4],
-        tau in (0, 10].  The paper: delta 5..40, tau 0.005..0.025.  None:
-        chosen from the data when ``auto``, else the paper's 10 and 0.01.
-    sigma : float
-        Gaussian width (box units), for ``basis="gaussian"``.
-    lambda_surface : float or (N,) array_like, optional
-        Smoothing of surface constraints, >= 0 (0 interpolates); per input
-        point if an array.  None: chosen from the data when ``auto``
-        (multi-order basis), else the paper's 1e-3.
-    auto : bool
-        Choose the parameters left at None from the surface constraints'
-        spacing and the points' noise (:mod:`o3drbf.constraints.parameters`).  Values given
-        explicitly always win.  ``stats["parameters"]`` records the values
-        used, ``stats["parameter_source"]`` where each came from ("given",
-        "auto" or "paper") and ``stats["auto"]`` the rule's inputs and reason.
-    lambda_exterior : float
-        Smoothing of exterior constraints, >= 0.
-    surface_count : int or None
-        Poisson-disc subsample to about this many surface constraints (the
-        paper: 2,000-3,000); None keeps every point (or uses ``surface_radius``).
-    surface_radius : float, optional
-        Poisson-disc radius (box units) instead of a count.
-    exterior_ratio : float
-        Exterior constraints per surface constraint, in [0, 1] (paper: 0.1).
-    exterior_offset : float
-        Distance of exterior constraints from the surface along the normal
-        (box units), in (0, 0.5].
-    sphere_count : int
-        Exterior constraints on a sphere around the bounding box (0: none).
-    solver : {"auto", "dense", "iterative", "fast"}
-    resolution : int
-        Marching-cubes cells along the longest side.
-    voxel_size : float, optional
-        Grid spacing in data units (overrides ``resolution``).
-    bounds : (2, 3) array_like, optional
-        Extraction box in data coordinates (default: the data's box, padded).
-    extract : bool
+        Index of the camera that produced each point (-1 unknown).
+    colors : (N, 3) array_like, optional
+        Per-point colours: the mesh is coloured from them.
+    options : Options, optional
+        All options, grouped by stage; default :class:`o3drbf.options.Options`
+        (built from :data:`o3drbf.options.DEFAULTS`).
+    extract_mesh : bool
         Run marching cubes (else ``mesh`` is None).
     seed : int
         Seed for every random choice: same input, same output.
     progress : bool
         Progress bars on long steps.
+    **option_values
+        Any key of :data:`o3drbf.options.DEFAULTS` (``surface_count=5000``,
+        ``kernel="gaussian"``, ``delta=4``, ``outliers="none"``,
+        ``resolution=256``, ...), applied over ``options``.  ``basis`` is
+        another name for ``kernel``.
 
     Returns
     -------
@@ -213,220 +643,100 @@ def reconstruct(
     Raises
     ------
     ValueError
-        Empty, NaN, too few or duplicated points, wrong shapes, parameters
-        out of range.
+        Empty, NaN, too few or duplicated points, wrong shapes, unknown
+        options, parameters out of range or not belonging to the kernel:
+        all before any costly step.
+    RuntimeError
+        No surface found.
 
     Notes
     -----
     Data are mapped into a 2x2x2 box (delta, tau, lambda and offsets refer
-    to it); everything returned is back in the input's coordinates.
+    to it); everything returned is back in the input's coordinates.  The
+    fit solves the regularized saddle-point system
+
+        [ Phi + diag(lambda)   Q ] [ w ]   [ y ]
+        [ Q^T                  0 ] [ p ] = [ 0 ]
+
+    with y = 0 at surface constraints and -1 at exterior ones, so that
+    f(c_i) = y_i - lambda_i w_i.
     """
     t_start = time.perf_counter()
-    cloud_normals = None
-    if hasattr(points, "points") and not isinstance(points, np.ndarray):
-        if getattr(points, "has_normals", lambda: False)():
-            cloud_normals = np.asarray(points.normals)
-    pts = as_points(points, min_count=10, allow_duplicates=False)
-    n = len(pts)
-    if normals is None:
-        normals = cloud_normals
-    auto = bool(auto)
-    use_auto = auto and str(basis).lower() == "multiorder"
-    source = {
-        name: "given" if value is not None else ("auto" if use_auto else "paper")
-        for name, value in (("delta", delta), ("tau", tau), ("lambda_surface", lambda_surface))
-    }
-    # Validate the given values now (before any costly step); fill the rest later.
-    make_kernel(basis, **_kernel_params(basis, DEFAULTS["delta"] if delta is None else delta, DEFAULTS["tau"] if tau is None else tau, sigma))
-    lam_s = per_point("lambda_surface", DEFAULTS["lambda_surface"] if lambda_surface is None else lambda_surface, n)
-    lam_e = check_number("lambda_exterior", lambda_exterior, low=0.0)
-    exterior_ratio = check_number("exterior_ratio", exterior_ratio, low=0.0, high=1.0)
-    exterior_offset = check_number("exterior_offset", exterior_offset, low=0.0, high=0.5, low_open=True)
-    sphere_count = check_number("sphere_count", sphere_count, low=0, high=100000, integer=True)
-    if surface_count is not None:
-        surface_count = check_number("surface_count", surface_count, low=10, integer=True)
-    if surface_radius is not None:
-        surface_radius = check_number("surface_radius", surface_radius, low=0.0, high=2.0, low_open=True)
-        surface_count = None
-    elif surface_count is None:
-        log.info("surface_count=None: every point is a surface constraint")
+    if "extract" in option_values:  # the older keyword
+        extract_mesh = bool(option_values.pop("extract"))
+    opts = Options.create(options, **option_values).validate()
+    stages = _Stages()
+    with stages.stage("read"):
+        if isinstance(points, PointSet):
+            data = points
+        else:
+            from o3drbf.validation import as_points
 
-    cams, camera_source = _cameras(cameras)
-    if point_camera is not None:
-        point_camera = np.asarray(point_camera)
-        if point_camera.shape != (n,) or not np.issubdtype(point_camera.dtype, np.integer):
-            raise ValueError(f"point_camera must be an ({n},) integer array, got {point_camera.dtype} {point_camera.shape}")
-        if cams is None:
-            raise ValueError("point_camera needs cameras")
-        if point_camera.max() >= len(cams) or point_camera.min() < -1:
-            raise ValueError(f"point_camera values must be -1 or camera indices 0..{len(cams) - 1}")
-    removed = 0
-    if outliers != "none":
-        keep = _remove_outliers(pts, outliers, outlier_radius, keep_components)
-        removed = n - len(keep)
-        pts = pts[keep]
-        normals = None if normals is None else np.asarray(normals, dtype=float)[keep]
-        lam_s = lam_s[keep]
-        point_camera = None if point_camera is None else point_camera[keep]
-        log.info("outliers (%s): removed %d of %d points", outliers, removed, n)
-        n = len(pts)
-        if n < 10:
-            raise ValueError(f"outlier removal left {n} points; at least 10 needed (raise outlier_radius)")
-
-    normals_estimated = normals is None and cams is None
-    if normals_estimated:
-        log.info("no normals given: estimating and orienting normals with Open3D (30 neighbours)")
-        normals = estimate_normals(pts, seed=seed)
-    nrm = None if normals is None else as_vectors(normals, n, name="normals")
-
-    norm = Normalization.from_points(pts)
-    box = norm.forward(pts)
-    t0 = time.perf_counter()
-    idx = surface_constraints(box, count=surface_count, radius=surface_radius, seed=seed)
-    surf_pts = box[idx]
-    camera_info = None
-    if cams is not None:
-        from o3drbf.constraints.visibility import exterior_constraints
-
-        try:
-            ext_data, camera_info = exterior_constraints(
-                pts[idx],
-                cams,
-                offset=exterior_offset / norm.scale,
-                ratio=max(exterior_ratio, 1e-9),
-                seed=seed,
-                occluder=pts,
-                point_camera=None if point_camera is None else point_camera[idx],
-            )
-        except ValueError as exc:
-            if camera_source:
-                raise ValueError(f"{camera_source}: {exc}") from None
-            raise
-        ext = norm.forward(ext_data) if exterior_ratio > 0 else np.zeros((0, 3))
-    else:
-        n_ext = int(round(exterior_ratio * len(idx)))
-        ext = exterior_from_normals(surf_pts, nrm[idx], exterior_offset, n_ext, seed=seed, reference=box)
-    sph = bounding_sphere(box, sphere_count)
-    spacing = mean_spacing(surf_pts) if len(surf_pts) > 1 else float("nan")
-    chosen = None
-    if use_auto and "auto" in source.values():
-        from o3drbf.constraints.parameters import estimate_noise, parameters_from
-
-        chosen = parameters_from(spacing, estimate_noise(box, seed=seed), norm.scale)
-        log.info("automatic parameters: %s", chosen.reason)
-        delta = chosen.delta if delta is None else delta
-        tau = chosen.tau if tau is None else tau
-    delta = DEFAULTS["delta"] if delta is None else delta
-    tau = DEFAULTS["tau"] if tau is None else tau
-    kernel = make_kernel(basis, **_kernel_params(basis, delta, tau, sigma))
-    if source["lambda_surface"] == "auto":
-        # The rule's lambda is relative to phi(0) of the kernel actually used.
-        lam_s = np.full(n, chosen.lambda_relative * kernel.value_at_zero)
-    constraints = Constraints.concat(
-        Constraints.of_kind(surf_pts, SURFACE, lam_s[idx]),
-        Constraints.of_kind(ext, EXTERIOR, lam_e),
-        Constraints.of_kind(sph, SPHERE, lam_e),
-    )
-    t_constraints = time.perf_counter() - t0
-    log.info(
-        "%d points -> %d surface, %d exterior, %d sphere constraints; mean spacing %.4f (box units)",
-        n, len(surf_pts), len(ext), len(sph), spacing,
-    )
-
-    surface, sol = fit(constraints, kernel, norm, solver=solver, progress=progress)
-    lo, hi = pts.min(axis=0), pts.max(axis=0)
+            data = PointSet.create(points, normals, cameras=cameras, point_camera=point_camera, colors=colors)
+            as_points(data.points, allow_duplicates=False)
+    n_input = len(data)
+    with stages.stage("outliers"):
+        data, outliers = remove_outliers(data, opts.outliers, seed=seed)
+    with stages.stage("normals"):
+        data, estimated = ensure_normals(data, seed=seed)
+    with stages.stage("constraints"):
+        cset = build_constraints(data, opts.constraints, seed=seed)
+    with stages.stage("parameters"):
+        params = choose_parameters(data, cset, opts.parameters, seed=seed, confidence=outliers.confidence)
+    with stages.stage("fit"):
+        surface, sol, robust = fit_surface(cset, params, opts.fit, progress=progress)
+    lo, hi = data.bounds
     pad = 0.05 * float((hi - lo).max())
     surface.metadata = {
-        "basis": kernel.to_dict(),
-        "lambda_surface": float(np.median(lam_s)),
-        "lambda_exterior": lam_e,
-        "exterior_offset": exterior_offset,
-        "counts": constraints.counts(),
-        "mean_spacing": spacing,
+        "basis": params.kernel.to_dict(),
+        "lambda_surface": params.lambda_surface,
+        "lambda_exterior": params.lambda_exterior,
+        "exterior_offset": opts.constraints.exterior_offset,
+        "counts": cset.constraints.counts(),
+        "mean_spacing": cset.spacing,
         "seed": seed,
         "bounds": [(lo - pad).tolist(), (hi + pad).tolist()],
-        "normals_estimated": normals_estimated,
-        "parameter_source": source,
+        "normals_estimated": estimated,
+        "parameter_source": params.source,
     }
-    log.info("solved %d constraints (%s) in %.2f s, relative residual %.1e", len(constraints), sol.method, sol.seconds, sol.residual)
-
     mesh = None
-    t_extract = 0.0
-    if extract:
-        from o3drbf.extract import extract_mesh
-
-        t0 = time.perf_counter()
-        try:
-            mesh = extract_mesh(surface, resolution=resolution, voxel_size=voxel_size, bounds=bounds, progress=progress)
-        except RuntimeError as exc:
-            raise RuntimeError(
-                f"{exc}. The fit has no zero crossing: smoothing may swamp the data "
-                f"(lambda_surface {np.median(lam_s):g} vs phi(0) = {kernel.value_at_zero:.3g}); "
-                "lower lambda_surface, or check the normals/exterior constraints"
-            ) from None
-        t_extract = time.perf_counter() - t0
-    data_constraints = Constraints(norm.inverse(constraints.points), constraints.values, constraints.smoothing, constraints.kind)
-    stats = {
-        "points": n,
-        "outliers_removed": removed,
-        "normals_estimated": normals_estimated,
-        "cameras": 0 if cams is None else len(cams),
-        "points_seen_per_camera": None if camera_info is None else [int(v) for v in camera_info["seen"]],
-        **{f"{k}_constraints": v for k, v in constraints.counts().items()},
-        "mean_spacing_box": spacing,
-        "mean_spacing": spacing / norm.scale,
-        "basis": repr(kernel),
-        "parameters": {**kernel.params, "lambda_surface": float(np.median(lam_s)), "lambda_exterior": lam_e},
-        "parameter_source": source,
-        "auto": None if chosen is None else chosen.as_dict(),
-        "solver": sol.method,
-        "iterations": sol.iterations,
-        "residual": sol.residual,
-        "constraints_seconds": t_constraints,
-        "solve_seconds": sol.seconds,
-        "extract_seconds": t_extract,
-        "total_seconds": time.perf_counter() - t_start,
-    }
-    if mesh is not None:
-        stats["vertices"] = len(mesh.vertices)
-        stats["triangles"] = len(mesh.triangles)
-    return Reconstruction(surface, mesh, data_constraints, sol, stats)
-
-
-def _cameras(cameras):
-    """(list of Camera or None, the file they came from or "") from None, a
-    sequence of Camera, a CameraSet, or a camera file path."""
-    if cameras is None:
-        return None, ""
-    if isinstance(cameras, (str, bytes)) or hasattr(cameras, "__fspath__"):
-        from o3drbf.cameras.model import load_cameras
-
-        cameras = load_cameras(cameras)
-    source = str(getattr(cameras, "source", "") or "")
-    cams = list(cameras)
-    if not cams:
-        raise ValueError(f"{source + ': ' if source else ''}cameras is empty; give at least one camera (or None to use normals)")
-    return cams, source
-
-
-def _remove_outliers(points, method: str, radius, keep_components: int) -> np.ndarray:
-    from o3drbf.prep.outliers import largest_components, statistical_outliers
-
-    if method == "largest":
-        if radius is None:
-            radius = 3.0 * mean_spacing(points)
-        kept, _ = largest_components(points, radius, keep=keep_components)
-        return kept
-    if method == "statistical":
-        kept, _ = statistical_outliers(points)
-        return kept
-    raise ValueError(f"outliers must be 'none', 'largest' or 'statistical', got {method!r}")
-
-
-def _kernel_params(basis, delta, tau, sigma) -> dict:
-    key = str(basis).lower()
-    if key == "multiorder":
-        return {"delta": delta, "tau": tau}
-    if key == "gaussian":
-        return {"sigma": sigma}
-    return {}
+    if extract_mesh:
+        with stages.stage("extract"):
+            mesh = extract(surface, opts.extract, progress=progress)
+        if data.colors is not None:
+            with stages.stage("colour"):
+                mesh = colour(mesh, data)
+    norm = cset.normalization
+    used = Constraints(norm.inverse(cset.constraints.points), cset.constraints.values, params.smoothing, cset.constraints.kind)
+    counts = cset.constraints.counts()
+    report = Report(
+        points=len(data),
+        input_points=n_input,
+        outliers_removed=outliers.removed,
+        outlier_method=outliers.method,
+        outlier_reason=outliers.reason,
+        normals_estimated=estimated,
+        cameras=0 if data.cameras is None else len(data.cameras),
+        points_seen_per_camera=cset.points_seen_per_camera,
+        surface_constraints=counts["surface"],
+        exterior_constraints=counts["exterior"],
+        sphere_constraints=counts["sphere"],
+        mean_spacing_box=cset.spacing,
+        mean_spacing=cset.spacing / norm.scale,
+        basis=repr(params.kernel),
+        parameters={**params.kernel.params, "lambda_surface": params.lambda_surface, "lambda_exterior": params.lambda_exterior},
+        parameter_source=params.source,
+        auto=params.auto,
+        solver=sol.method,
+        iterations=sol.iterations,
+        residual=sol.residual,
+        robust=robust,
+        constraints_seconds=stages.seconds("constraints"),
+        solve_seconds=sol.seconds,
+        extract_seconds=stages.seconds("extract"),
+        total_seconds=time.perf_counter() - t_start,
+        vertices=None if mesh is None else len(mesh.vertices),
+        triangles=None if mesh is None else len(mesh.triangles),
+        stages=stages.timings,
+    )
+    return Reconstruction(surface, mesh, used, sol, report, opts)

@@ -84,6 +84,8 @@ def test_explicit_values_win_and_stats_record_the_source(noisy_torus):
     # auto lambda is relative to phi(0) of the kernel actually used (delta 7, not the rule's delta)
     assert s["parameters"]["lambda_surface"] == pytest.approx(s["auto"]["lambda_relative"] * MultiOrder(7.0, s["parameters"]["tau"]).value_at_zero)
     r = o3drbf.reconstruct(p, n, surface_count=600, resolution=32, extract=False)
+    assert r.stats["auto"] is not None  # the API's default is the command line's: automatic
+    r = o3drbf.reconstruct(p, n, auto=False, surface_count=600, resolution=32, extract=False)
     assert r.stats["auto"] is None
     assert r.stats["parameter_source"] == {"delta": "paper", "tau": "paper", "lambda_surface": "paper"}
     assert {k: r.stats["parameters"][k] for k in PAPER_PARAMETERS} == PAPER_PARAMETERS

@@ -136,7 +136,7 @@ def test_make_kernel_and_errors():
     assert set(KERNELS) == {"multiorder", "thinplate", "gaussian"}
     k = MultiOrder(7, 0.02)
     assert make_kernel(**k.to_dict()) == k
-    with pytest.raises(ValueError, match="unknown basis 'cubic'"):
+    with pytest.raises(ValueError, match="unknown kernel 'cubic'"):
         make_kernel("cubic")
     with pytest.raises(ValueError, match="takes parameters"):
         make_kernel("thinplate", delta=3)

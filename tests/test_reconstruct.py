@@ -70,7 +70,7 @@ def test_more_smoothing_is_smoother_and_fits_less():
     p, n = torus.sample(6000, noise=0.01, seed=6)
     curv, fit = [], []
     for lam in (1e-4, 3e-4, 1e-3, 3e-3):
-        r = o3drbf.reconstruct(p, n, lambda_surface=lam, surface_count=1500, resolution=64)
+        r = o3drbf.reconstruct(p, n, lambda_surface=lam, auto=False, surface_count=1500, resolution=64)
         curv.append(average_curvature(r.mesh))
         fit.append(fitness_error(p, r.mesh)["rms"])
     assert all(a > b for a, b in zip(curv, curv[1:])), curv
@@ -101,7 +101,8 @@ def test_without_normals_they_are_estimated_and_logged(caplog):
 @pytest.mark.parametrize("basis", ["thinplate", "gaussian"])
 def test_other_bases_run(basis):
     p, n = Sphere(1.0).sample(2000, seed=2)
-    r = o3drbf.reconstruct(p, n, basis=basis, sigma=0.3, surface_count=500, resolution=32)
+    extra = {"sigma": 0.3} if basis == "gaussian" else {}
+    r = o3drbf.reconstruct(p, n, kernel=basis, surface_count=500, resolution=32, **extra)
     radii = np.linalg.norm(np.asarray(r.mesh.vertices), axis=1)
     assert abs(np.median(radii) - 1) < 0.05
 
@@ -123,8 +124,11 @@ def test_bad_input_gets_a_clear_error():
         (p, n, {"surface_count": 3}, "surface_count must be"),
         (p, n, {"exterior_offset": 2.0}, "exterior_offset must be"),
         (p, n, {"exterior_ratio": 1.5}, "exterior_ratio must be"),
-        (p, n, {"basis": "spline"}, "unknown basis"),
-        (p, n, {"solver": "magic"}, "method must be one of"),
+        (p, n, {"basis": "spline"}, "unknown kernel"),
+            (p, n, {"kernel": "gaussian", "delta": -5}, "delta does not apply to the 'gaussian' kernel"),
+            (p, n, {"kernel": "thinplate", "sigma": 0.3}, "sigma does not apply"),
+            (p, n, {"surface_cuont": 10}, "unknown option"),
+        (p, n, {"solver": "magic"}, "solver must be one of"),
         (p, n, {"resolution": 1}, "resolution must be"),
         ("points.ply", None, {}, r"must be an \(N, 3\) array"),
     ]

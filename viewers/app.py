@@ -88,7 +88,9 @@ _POLL_MS = 100
 
 def add_view_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The ``o3drbf view`` arguments (no PyVista import here)."""
-    from o3drbf.pipeline import DEFAULTS
+    from o3drbf.options import DEFAULTS, OUTLIER_METHODS, PAPER_VALUES, VIEWER_OVERRIDES
+
+    start = {**DEFAULTS, **VIEWER_OVERRIDES}
 
     parser.add_argument(
         "input",
@@ -103,18 +105,18 @@ def add_view_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPars
     g.add_argument(
         "--auto",
         action=argparse.BooleanOptionalAction,
-        default=True,
+        default=start["auto"],
         help="first fit: choose delta, tau and lambda-surface from the data (default); --no-auto: the paper's "
-        f"delta {DEFAULTS['delta']:g}, tau {DEFAULTS['tau']:g}, lambda-surface {DEFAULTS['lambda_surface']:g}",
+        f"delta {PAPER_VALUES['delta']:g}, tau {PAPER_VALUES['tau']:g}, lambda-surface {PAPER_VALUES['lambda_surface']:g}",
     )
     g.add_argument("--lambda-surface", type=float, default=None, help="smoothing of surface constraints (default: --auto)")
     g.add_argument("--delta", type=float, default=None, help="multi-order basis: first-order weight (default: --auto)")
     g.add_argument("--tau", type=float, default=None, help="multi-order basis: third-order weight (default: --auto)")
     g.add_argument("--level", type=float, default=0.0, help="iso-level of the shown surface (default %(default)s)")
-    g.add_argument("--resolution", type=int, default=64, help="marching-cubes cells along the longest side, 2..2048 (default %(default)s)")
+    g.add_argument("--resolution", type=int, default=start["resolution"], help="marching-cubes cells along the longest side, 2..2048 (default %(default)s)")
     g = parser.add_argument_group("fit")
-    g.add_argument("--surface-count", type=int, default=1500, help="about this many surface constraints (default %(default)s)")
-    g.add_argument("--outliers", default="none", choices=["none", "largest", "statistical"], help="outlier removal before fitting (default %(default)s)")
+    g.add_argument("--surface-count", type=int, default=start["surface_count"], help="about this many surface constraints (default %(default)s)")
+    g.add_argument("--outliers", default=start["outliers"], choices=list(OUTLIER_METHODS), help="outlier handling (as o3drbf reconstruct; default %(default)s)")
     g.add_argument("--seed", type=int, default=0, help="seed for sampling (default %(default)s)")
     g = parser.add_argument_group("window")
     g.add_argument("--window-size", type=int, nargs=2, default=(1600, 800), metavar=("W", "H"), help="pixels (default %(default)s)")
@@ -469,13 +471,13 @@ class ViewerApp:
     @staticmethod
     def _slider_values(params: FitParams) -> dict[str, float]:
         """Slider positions for ``params`` (values still to be chosen by the fit show the paper's)."""
-        from o3drbf.pipeline import DEFAULTS
+        from o3drbf.options import PAPER_VALUES
 
-        lam = DEFAULTS["lambda_surface"] if params.lambda_surface is None else params.lambda_surface
+        lam = PAPER_VALUES["lambda_surface"] if params.lambda_surface is None else params.lambda_surface
         return {
             "lambda_surface": float(np.log10(lam)) if lam > 0 else SLIDERS["lambda_surface"][1][0],
-            "delta": DEFAULTS["delta"] if params.delta is None else params.delta,
-            "tau": DEFAULTS["tau"] if params.tau is None else params.tau,
+            "delta": PAPER_VALUES["delta"] if params.delta is None else params.delta,
+            "tau": PAPER_VALUES["tau"] if params.tau is None else params.tau,
             "level": params.level,
             "resolution": float(params.resolution),
         }

@@ -95,7 +95,7 @@ def load_view_input(path: str, cameras: str | None = None) -> ViewInput:
     ValueError
         Unreadable input, cameras given twice, cameras for a saved model.
     """
-    from o3drbf.cli.commands import _read_input
+    from o3drbf.pointset import read_input
 
     p = Path(path)
     if not p.exists():
@@ -106,16 +106,8 @@ def load_view_input(path: str, cameras: str | None = None) -> ViewInput:
         from o3drbf.surface import ImplicitSurface
 
         return ViewInput(source=str(p), model=ImplicitSurface.load(p))
-    points, normals, cams, point_camera = _read_input(str(p))
-    if cameras:
-        if cams is not None:
-            raise ValueError(f"{p} already holds cameras; drop --cameras")
-        from o3drbf.cameras.model import load_cameras
-
-        cams = load_cameras(cameras)
-        if len(cams) == 0:
-            raise ValueError(f"{cameras} holds no cameras; give a camera file with at least one camera")
-    points = np.asarray(points, dtype=float)
+    data = read_input(p, cameras=cameras or None)
+    points, normals, cams, point_camera = data.points, data.normals, data.cameras, data.point_camera
     estimated = False
     if normals is None and cams is None:
         from o3drbf.pipeline import estimate_normals

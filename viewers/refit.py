@@ -17,6 +17,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from o3drbf.options import DEFAULTS, VIEWER_OVERRIDES
+
 __all__ = ["FitParams", "FitResult", "Refitter", "pick_values", "run_fit", "run_extract"]
 
 
@@ -29,15 +31,15 @@ class FitParams:
     paper's values); a finished fit reports the values it used.
     """
 
-    lambda_surface: float | None = None
-    delta: float | None = None
-    tau: float | None = None
-    auto: bool = True
+    lambda_surface: float | None = DEFAULTS["lambda_surface"]
+    delta: float | None = DEFAULTS["delta"]
+    tau: float | None = DEFAULTS["tau"]
+    auto: bool = DEFAULTS["auto"]
     level: float = 0.0
-    resolution: int = 64
-    surface_count: int = 1500
-    outliers: str = "none"
-    solver: str = "auto"
+    resolution: int = VIEWER_OVERRIDES["resolution"]
+    surface_count: int = VIEWER_OVERRIDES["surface_count"]
+    outliers: str = DEFAULTS["outliers"]
+    solver: str = DEFAULTS["solver"]
     seed: int = 0
 
     def fit_key(self) -> tuple:
@@ -132,14 +134,11 @@ def run_extract(surface, params: FitParams):
 
 def run_fit(data, params: FitParams, status=None) -> FitResult:
     """Fit the implicit function to ``data`` (a :class:`~o3drbf.viewers.inputs.ViewInput`) and mesh it."""
-    import inspect
-
     from o3drbf.pipeline import reconstruct
 
     t0 = time.perf_counter()
     if status is not None:
         status.set("fitting (constraints, solve)")
-    extra = {"auto": params.auto} if "auto" in inspect.signature(reconstruct).parameters else {}
     result = reconstruct(
         data.points,
         None if data.cameras is not None else data.normals,
@@ -152,8 +151,8 @@ def run_fit(data, params: FitParams, status=None) -> FitResult:
         surface_count=min(params.surface_count, len(data.points)),
         solver=params.solver,
         seed=params.seed,
-        extract=False,
-        **extra,
+        auto=params.auto,
+        extract_mesh=False,
     )
     params = used_params(result.surface, params)
     if status is not None:

@@ -17,7 +17,8 @@ import sys
 import time
 from pathlib import Path
 
-from o3drbf.pipeline import DEFAULTS
+from o3drbf.io.files import MESH_FORMATS
+from o3drbf.options import DEFAULTS
 
 __all__ = ["main", "build_parser"]
 
@@ -32,6 +33,71 @@ def _positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"expected a number >= 1, got {value}")
     return value
+
+
+def _non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {value}")
+    return value
+
+
+def add_option_arguments(parser: argparse.ArgumentParser) -> None:
+    """The reconstruction options, from the one table of defaults (:data:`o3drbf.options.DEFAULTS`).
+
+    :func:`options_from_args` turns the parsed values back into :class:`~o3drbf.options.Options`.
+    """
+    from o3drbf.options import OUTLIER_METHODS, PAPER_VALUES, SOLVER_METHODS
+    from o3drbf.rbf.kernels import KERNELS
+
+    d = DEFAULTS
+    g = parser.add_argument_group("kernel and parameters (lengths in the 2x2x2 box the data are normalized into)")
+    g.add_argument("--kernel", "--basis", dest="kernel", default=d["kernel"], choices=list(KERNELS),
+                   help="radial basis function (default %(default)s)")
+    g.add_argument("--auto", action=argparse.BooleanOptionalAction, default=d["auto"],
+                   help="choose delta, tau and lambda-surface from the data's spacing and noise (default); "
+                   f"--no-auto: the paper's values delta {PAPER_VALUES['delta']:g}, tau {PAPER_VALUES['tau']:g}, "
+                   f"lambda-surface {PAPER_VALUES['lambda_surface']:g}. An explicit --delta, --tau or --lambda-surface overrides only that one")
+    g.add_argument("--delta", type=float, default=d["delta"], help=f"multiorder: first-order weight (default: --auto, or {PAPER_VALUES['delta']:g})")
+    g.add_argument("--tau", type=float, default=d["tau"], help=f"multiorder: third-order weight (default: --auto, or {PAPER_VALUES['tau']:g})")
+    g.add_argument("--sigma", type=float, default=d["sigma"], help=f"gaussian: width (default {PAPER_VALUES['sigma']:g})")
+    g.add_argument("--lambda-surface", type=float, default=d["lambda_surface"],
+                   help=f"smoothing of surface constraints, >= 0 (default: --auto, or {PAPER_VALUES['lambda_surface']:g})")
+    g.add_argument("--lambda-exterior", type=float, default=d["lambda_exterior"], help="smoothing of exterior constraints (default %(default)s)")
+    g = parser.add_argument_group("outliers")
+    g.add_argument("--outliers", default=d["outliers"], choices=list(OUTLIER_METHODS),
+                   help="auto: free-space consistency with cameras, an isolated-point rule without, and a robust fit; "
+                   "largest: keep the largest connected components; statistical: Open3D's filter (default %(default)s)")
+    g.add_argument("--outlier-radius", type=float, default=d["outlier_radius"],
+                   help="neighbourhood radius for --outliers largest, in data units (default: 3 mean spacings)")
+    g.add_argument("--keep-components", type=_positive_int, default=d["keep_components"], help="components kept by --outliers largest (default %(default)s)")
+    g.add_argument("--robust", action=argparse.BooleanOptionalAction, default=d["robust"],
+                   help="iteratively reweighted fit: down-weight surface constraints far from the surface (default: on)")
+    g = parser.add_argument_group("constraints")
+    g.add_argument("--surface-count", type=_positive_int, default=d["surface_count"], help="Poisson-disc subsample to about N surface constraints (default %(default)s)")
+    g.add_argument("--surface-radius", type=float, default=d["surface_radius"], help="Poisson-disc radius (box units) instead of --surface-count")
+    g.add_argument("--all-points", action="store_true", help="use every point as a surface constraint (no subsampling)")
+    g.add_argument("--exterior-ratio", type=float, default=d["exterior_ratio"], help="exterior constraints per surface constraint (default %(default)s)")
+    g.add_argument("--exterior-offset", type=float, default=d["exterior_offset"], help="distance of exterior constraints from the surface, box units (default %(default)s)")
+    g.add_argument("--sphere-count", type=int, default=d["sphere_count"], help="exterior constraints on a sphere around the data (default %(default)s)")
+    g = parser.add_argument_group("solve and mesh")
+    g.add_argument("--solver", default=d["solver"], choices=list(SOLVER_METHODS),
+                   help="auto: dense up to a few thousand constraints, fast above (default %(default)s)")
+    g.add_argument("--resolution", type=_positive_int, default=d["resolution"], help="marching-cubes cells along the longest side (default %(default)s)")
+    g.add_argument("--voxel-size", type=float, default=d["voxel_size"], help="grid spacing in data units (overrides --resolution)")
+
+
+def options_from_args(args) -> "Options":
+    """:class:`~o3drbf.options.Options` from arguments added by :func:`add_option_arguments`."""
+    from o3drbf.options import Options
+
+    flat = {name: getattr(args, name) for name in DEFAULTS if hasattr(args, name)}
+    if getattr(args, "all_points", False):
+        flat["surface_count"] = None
+    return Options.create(**flat)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -54,41 +120,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="point cloud file (normals used when present), or a file that holds points and cameras: "
         "Stanford .conf (range scans), COLMAP text folder, Bundler bundle.out, o3drbf scan .json",
     )
-    rec.add_argument("-o", "--output", required=True, help="output mesh (.ply, .obj, .stl, .off, .gltf, .glb)")
-    g = rec.add_argument_group("basis")
-    g.add_argument("--basis", default=DEFAULTS["basis"], choices=["multiorder", "thinplate", "gaussian"])
-    g.add_argument(
-        "--auto",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="choose delta, tau and lambda-surface from the data's spacing and noise (default); "
-        f"--no-auto: the paper's fixed values delta {DEFAULTS['delta']:g}, tau {DEFAULTS['tau']:g}, lambda-surface {DEFAULTS['lambda_surface']:g}. "
-        "An explicit --delta, --tau or --lambda-surface overrides only that one",
-    )
-    g.add_argument("--delta", type=float, default=None, help=f"multi-order: first-order weight, enters squared (default: --auto, or {DEFAULTS['delta']:g})")
-    g.add_argument("--tau", type=float, default=None, help=f"multi-order: third-order weight (default: --auto, or {DEFAULTS['tau']:g})")
-    g.add_argument("--sigma", type=float, default=DEFAULTS["sigma"], help="gaussian: width (default %(default)s)")
-    g = rec.add_argument_group("cameras and outliers")
-    g.add_argument("--cameras", metavar="FILE", help="cameras that saw the points (JSON, Middlebury *_par.txt, COLMAP folder, bundle.out, .conf): exterior constraints go toward them")
-    g.add_argument("--outliers", default="none", choices=["none", "largest", "statistical"], help="keep the largest connected component (or Open3D statistical removal) first (default %(default)s)")
-    g.add_argument("--outlier-radius", type=float, default=None, help="neighbourhood radius for --outliers largest, data units (default: 3 mean spacings)")
-    g.add_argument("--keep-components", type=_positive_int, default=1, help="components kept by --outliers largest (default %(default)s)")
-    g = rec.add_argument_group("constraints")
-    g.add_argument("--lambda-surface", type=float, default=None, help=f"smoothing of surface constraints, >= 0 (default: --auto, or {DEFAULTS['lambda_surface']:g})")
-    g.add_argument("--lambda-exterior", type=float, default=DEFAULTS["lambda_exterior"], help="smoothing of exterior constraints (default %(default)s)")
-    g.add_argument("--surface-count", type=_positive_int, default=DEFAULTS["surface_count"], help="Poisson-disc subsample to about N surface constraints (default %(default)s)")
-    g.add_argument("--surface-radius", type=float, default=None, help="Poisson-disc radius (box units) instead of --surface-count")
-    g.add_argument("--all-points", action="store_true", help="use every point as a surface constraint (no subsampling)")
-    g.add_argument("--exterior-ratio", type=float, default=DEFAULTS["exterior_ratio"], help="exterior constraints per surface constraint (default %(default)s)")
-    g.add_argument("--exterior-offset", type=float, default=DEFAULTS["exterior_offset"], help="distance of exterior constraints from the surface (default %(default)s)")
-    g.add_argument("--sphere-count", type=int, default=DEFAULTS["sphere_count"], help="exterior constraints on a sphere around the data (default %(default)s)")
-    g = rec.add_argument_group("solve and mesh")
-    g.add_argument("--solver", default="auto", choices=["auto", "dense", "iterative", "fast"])
-    g.add_argument("--resolution", type=_positive_int, default=DEFAULTS["resolution"], help="marching-cubes cells along the longest side (default %(default)s)")
-    g.add_argument("--voxel-size", type=float, default=None, help="grid spacing in data units (overrides --resolution)")
+    rec.add_argument("-o", "--output", required=True, help=f"output mesh ({', '.join(MESH_FORMATS)})")
+    add_option_arguments(rec)
+    g = rec.add_argument_group("input and output")
+    g.add_argument("--cameras", metavar="FILE", help="cameras that saw the points (JSON, Middlebury *_par.txt, COLMAP folder, "
+                   "bundle.out, .conf): exterior constraints go toward them and points in their observed free space are outliers")
     g.add_argument("--save-model", metavar="FILE.npz", help="also save the implicit function (evaluate it later with o3drbf.ImplicitSurface.load)")
-    g.add_argument("--seed", type=int, default=0, help="seed for sampling (default %(default)s)")
-    g = rec.add_argument_group("output")
+    g.add_argument("--seed", type=_non_negative_int, default=0, help="seed for every random choice (default %(default)s)")
     g.add_argument("--no-color", action="store_true", help="do not colour the mesh from the input points' colours (used when the input has colours)")
     g.add_argument("-q", "--quiet", action="store_true", help="no progress bars or summary")
     g.add_argument("-v", "--verbose", action="store_true", help="log each step")
@@ -180,10 +218,14 @@ def _one_line(exc: BaseException) -> str:
 
 
 def _reconstruct(args) -> int:
+    from dataclasses import replace
+
     from o3drbf.io import files as io
     from o3drbf.pipeline import reconstruct
+    from o3drbf.pointset import read_input
 
     t0 = time.perf_counter()
+    options = options_from_args(args).validate()
     out = io.check_output(args.output, inputs=[args.input])
     if args.save_model:
         model = Path(args.save_model)
@@ -191,135 +233,76 @@ def _reconstruct(args) -> int:
             raise ValueError(f"--save-model must end in .npz, got {args.save_model!r}")
         if model.resolve() == Path(args.input).resolve():
             raise ValueError("--save-model is the input file; choose another name (inputs are never overwritten)")
-    points, normals, cameras, point_camera = _read_input(args.input)
-    if args.cameras:
-        if cameras is not None:
-            raise ValueError(f"{args.input} already holds cameras; drop --cameras")
-        from o3drbf.cameras.model import load_cameras
-
-        cameras = load_cameras(args.cameras)
-    if normals is None and cameras is None:
+        if not model.resolve().parent.is_dir():
+            raise FileNotFoundError(f"--save-model folder does not exist: {model.parent}")
+    data = read_input(args.input, cameras=args.cameras)
+    if args.no_color:
+        data = replace(data, colors=None)
+    if data.normals is None and data.cameras is None:
         log.warning("%s has no normals: estimating and orienting them with Open3D", args.input)
-    progress = not args.quiet
-    result = reconstruct(
-        points,
-        normals,
-        cameras=cameras,
-        point_camera=point_camera,
-        outliers=args.outliers,
-        outlier_radius=args.outlier_radius,
-        keep_components=args.keep_components,
-        basis=args.basis,
-        delta=args.delta,
-        tau=args.tau,
-        sigma=args.sigma,
-        lambda_surface=args.lambda_surface,
-        auto=args.auto,
-        lambda_exterior=args.lambda_exterior,
-        surface_count=None if args.all_points else args.surface_count,
-        surface_radius=args.surface_radius,
-        exterior_ratio=args.exterior_ratio,
-        exterior_offset=args.exterior_offset,
-        sphere_count=args.sphere_count,
-        solver=args.solver,
-        resolution=args.resolution,
-        voxel_size=args.voxel_size,
-        seed=args.seed,
-        progress=progress,
-    )
-    colored = ""
-    if not args.no_color:
-        colors = _input_colors(args.input, cameras if not args.cameras else None)
-        if colors is not None and len(colors) == len(points):
-            from o3drbf.mesh.color import color_mesh
-
-            result.mesh = color_mesh(result.mesh, points=points, colors=colors)
-            colored = "coloured from the input points' colours"
+    result = reconstruct(data, options=options, seed=args.seed, progress=not args.quiet)
+    t_write = time.perf_counter()
     io.write_mesh(out, result.mesh, inputs=[args.input])
     if args.save_model:
         result.surface.save(args.save_model)
+    from o3drbf.pipeline import StageTiming, peak_rss_mb
+
+    result.report.stages.append(StageTiming("write", time.perf_counter() - t_write, peak_rss_mb()))
     if not args.quiet:
-        text = summary(result, points, args.input, out, args.save_model, time.perf_counter() - t0)
-        if colored:
-            text = text.replace("\n  watertight", f"\n  colour           {colored}\n  watertight", 1)
-        print(text)
+        print(summary(result, data.points, args.input, out, args.save_model, time.perf_counter() - t0))
     return 0
 
 
-_CAMERA_INPUTS = (".conf", ".out", ".json")
-
-
-def _read_input(path: str):
-    """Points, normals, cameras and the per-point camera index from INPUT."""
-    from o3drbf.io import files as io
-
-    p = Path(path)
-    if p.is_dir() or p.suffix.lower() in _CAMERA_INPUTS:
-        from o3drbf.cameras.model import load_cameras
-
-        if not p.exists():
-            raise FileNotFoundError(f"input not found: {p}")
-        cams = load_cameras(p, read_scans=True) if p.suffix.lower() == ".conf" else load_cameras(p)
-        if cams.points is None or len(cams.points) == 0:
-            raise ValueError(f"{p} holds cameras but no points; give a point cloud as INPUT and this file as --cameras")
-        pc = cams.point_camera
-        if pc is not None and (pc < 0).all():
-            pc = None
-        return cams.points, None, cams, pc
-    points, normals, _ = io.read_points(p)
-    return points, normals, None, None
-
-
-def _input_colors(path: str, cameras) -> "np.ndarray | None":
-    """Per-point colours of INPUT (a coloured point cloud, or a scan JSON / COLMAP model with colours)."""
-    from o3drbf.io import files as io
-
-    if cameras is not None and getattr(cameras, "colors", None) is not None:
-        return cameras.colors
-    p = Path(path)
-    if p.is_dir() or p.suffix.lower() in _CAMERA_INPUTS:
-        return None
-    return io.read_points(p)[2]
-
-
-def _parameters_line(stats) -> str:
+def _parameters_line(report) -> str:
     """The parameters used, where each came from, and the automatic rule's reason."""
-    params, source = stats.get("parameters", {}), stats.get("parameter_source", {})
-    parts = [f"{name} {params[name]:.4g} ({source.get(name, 'given')})" for name in ("delta", "tau", "lambda_surface") if name in params]
+    params, source = report.parameters, report.parameter_source
+    parts = [f"{name} {params[name]:.4g} ({source.get(name, 'given')})" for name in ("delta", "tau", "sigma", "lambda_surface") if name in params]
     line = ", ".join(parts)
-    if stats.get("auto"):
-        line += f"\n  auto because     {stats['auto']['reason']}"
+    if report.auto:
+        line += f"\n  auto because     {report.auto['reason']}"
     return line
 
 
 def summary(result, points, input_path, output_path, model_path=None, seconds=None) -> str:
-    """The closing summary: what went in, what came out, and how well it fits."""
+    """The closing summary: what went in, what came out, how well it fits, and where the time went."""
     from o3drbf.mesh.metrics import fitness_error, mesh_report
 
-    s = result.stats
+    s = result.report
     fit = fitness_error(points, result.mesh)
     rep = mesh_report(result.mesh)
     scale = result.surface.normalization.scale
+    colored = result.mesh.has_vertex_colors()
     lines = [
         f"o3drbf reconstruct: {input_path} -> {output_path}",
-        f"  points           {s['points']:,}" + ("  (normals estimated)" if s["normals_estimated"] else "")
-        + (f", {s['outliers_removed']:,} outliers removed" if s.get("outliers_removed") else ""),
-        f"  constraints      {s['surface_constraints']:,} surface, {s['exterior_constraints']:,} exterior, {s['sphere_constraints']:,} sphere",
-        f"  mean spacing     {s['mean_spacing']:.4g} (data units), {s['mean_spacing_box']:.4f} in the 2x2x2 box",
-        f"  basis            {s['basis']}",
+        f"  points           {s.points:,}" + ("  (normals estimated)" if s.normals_estimated else ""),
+        f"  outliers         {s.outliers_removed:,} removed ({s.outlier_method}: {s.outlier_reason})",
+        f"  constraints      {s.surface_constraints:,} surface, {s.exterior_constraints:,} exterior, {s.sphere_constraints:,} sphere",
+        f"  mean spacing     {s.mean_spacing:.4g} (data units), {s.mean_spacing_box:.4f} in the 2x2x2 box",
+        f"  basis            {s.basis}",
         f"  parameters       {_parameters_line(s)}",
-        f"  solve            {s['solver']}, {s['solve_seconds']:.2f} s, relative residual {s['residual']:.1e}"
-        + (f", {s['iterations']} iterations" if s["iterations"] else ""),
-        f"  mesh             {s['triangles']:,} triangles, {s['vertices']:,} vertices, extracted in {s['extract_seconds']:.2f} s",
-        f"  watertight       {'yes' if rep['watertight'] else 'NO'} (edge-manifold, closed), Euler characteristic {rep['euler_characteristic']}, {rep['components']} component(s)",
+        f"  solve            {s.solver}, {s.solve_seconds:.2f} s, relative residual {s.residual:.1e}"
+        + (f", {s.iterations} iterations" if s.iterations else ""),
+    ]
+    if s.robust:
+        r = s.robust
+        lines.append(f"  robust fit       {r.get('rounds', 0)} round(s), {r.get('downweighted', 0):,} constraints down-weighted, "
+                     f"{r.get('dropped', 0):,} dropped (residual scale {r.get('scale', float('nan')):.2g} box units)")
+    lines += [
+        f"  mesh             {s.triangles:,} triangles, {s.vertices:,} vertices, extracted in {s.extract_seconds:.2f} s",
+        f"  watertight       {'yes' if rep['watertight'] else 'NO'} ({rep.get('watertight_definition', 'closed, edge-manifold')}), "
+        f"Euler characteristic {rep['euler_characteristic']}, {rep['components']} component(s)",
         f"  fitness error    mean {fit['mean']:.3g}, RMS {fit['rms']:.3g}, max {fit['max']:.3g} (data units; mean {fit['mean'] * scale:.2e} in the box)",
     ]
-    if s.get("cameras"):
-        seen = s["points_seen_per_camera"]
+    if colored:
+        lines.insert(-2, "  colour           from the input points' colours")
+    if s.cameras:
+        seen = s.points_seen_per_camera or []
         shown = ", ".join(f"{v:,}" for v in seen[:12]) + (", ..." if len(seen) > 12 else "")
-        lines.insert(3, f"  cameras          {s['cameras']}; surface constraints seen per camera: {shown}")
+        lines.insert(3, f"  cameras          {s.cameras}; surface constraints seen per camera: {shown}")
     if model_path:
         lines.append(f"  model            {model_path}")
+    stages = ", ".join(f"{t.name} {t.seconds:.2f}" for t in s.stages)
+    lines.append(f"  time per stage   {stages} s; peak memory {max((t.peak_mb for t in s.stages), default=0) / 1024:.2f} GB")
     if seconds is not None:
         lines.append(f"  total time       {seconds:.1f} s")
     return "\n".join(lines)

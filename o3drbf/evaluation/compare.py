@@ -45,10 +45,13 @@ from pathlib import Path
 
 import numpy as np
 
+from o3drbf.options import DEFAULTS
 from o3drbf.validation import as_points, check_number
 
 __all__ = [
     "METHODS",
+    "PEERS",
+    "available_methods",
     "run_method",
     "compare",
     "compare_with_meshes",
@@ -60,7 +63,19 @@ __all__ = [
     "COLUMNS",
 ]
 
-METHODS = ("multiorder", "thinplate", "gaussian", "poisson", "bpa", "alpha")
+#: Open3D's reconstructions run beside o3drbf's kernels.
+PEERS = ("poisson", "bpa", "alpha")
+
+
+def available_methods() -> tuple[str, ...]:
+    """Every registered o3drbf kernel (:data:`o3drbf.rbf.kernels.KERNELS`), then the peers."""
+    from o3drbf.rbf.kernels import KERNELS
+
+    return (*KERNELS, *PEERS)
+
+
+#: The methods at import time (kernels registered later are found by :func:`available_methods`).
+METHODS = available_methods()
 
 #: Table columns, in order (every row has every key; missing values are None).
 COLUMNS = (
@@ -106,11 +121,12 @@ def parse_methods(methods) -> tuple[str, ...]:
         names = [m.strip().lower() for m in methods.split(",") if m.strip()]
     else:
         names = [str(m).strip().lower() for m in methods]
+    valid = available_methods()
     if not names:
-        raise ValueError(f"no methods given; valid methods: {', '.join(METHODS)}")
-    unknown = [m for m in names if m not in METHODS]
+        raise ValueError(f"no methods given; valid methods: {', '.join(valid)}")
+    unknown = [m for m in names if m not in valid]
     if unknown:
-        raise ValueError(f"unknown method(s) {', '.join(map(repr, unknown))}; valid methods: {', '.join(METHODS)}")
+        raise ValueError(f"unknown method(s) {', '.join(map(repr, unknown))}; valid methods: {', '.join(valid)}")
     return tuple(dict.fromkeys(names))  # drop repeats, keep order
 
 
@@ -203,11 +219,15 @@ def _run(name, points, normals, cameras, options):
     import open3d as o3d
 
     seed = int(options.get("seed", 0))
-    if name in ("multiorder", "thinplate", "gaussian"):
+    if name not in PEERS:
+        # Exactly what `o3drbf reconstruct` runs: the one table of defaults, the
+        # kernel named, and only the options given here.
+        from o3drbf.options import DEFAULTS
         from o3drbf.pipeline import reconstruct
 
-        kw = {k: options[k] for k in ("resolution", "surface_count", "outliers", "delta", "tau", "sigma", "lambda_surface") if k in options}
-        result = reconstruct(points, normals, cameras=cameras, point_camera=options.get("point_camera") if cameras is not None else None, basis=name, seed=seed, **kw)
+        kw = {k: options[k] for k in DEFAULTS if k in options and k != "kernel"}
+        result = reconstruct(points, normals, cameras=cameras, point_camera=options.get("point_camera") if cameras is not None else None,
+                             kernel=name, seed=seed, **kw)
         return result.mesh
     if normals is None:
         normals = open3d_normals(points, cameras, options.get("point_camera"))
@@ -381,7 +401,7 @@ def compare_with_meshes(
     truth=None,
     methods=METHODS,
     seed: int = 0,
-    resolution: int = 128,
+    resolution: int = DEFAULTS["resolution"],
     poisson_depth: int = 8,
     density_quantile: float = 0.0,
     *,
@@ -440,7 +460,7 @@ def compare_with_meshes(
     return rows, meshes
 
 
-def compare(points, normals=None, cameras=None, truth=None, methods=METHODS, seed=0, resolution=128, poisson_depth=8, density_quantile=0.0, **kw) -> list[dict]:
+def compare(points, normals=None, cameras=None, truth=None, methods=METHODS, seed=0, resolution=DEFAULTS["resolution"], poisson_depth=8, density_quantile=0.0, **kw) -> list[dict]:
     """Run each method on the same points and measure the results.
 
     Parameters
@@ -574,7 +594,7 @@ def add_compare_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentP
     parser.add_argument("--truth", metavar="MESH", default=None, help="ground-truth mesh: adds Chamfer, Hausdorff, F-score (1%% of its diagonal) and normal consistency")
     parser.add_argument("--methods", default=",".join(METHODS), help="comma-separated, from: " + ", ".join(METHODS) + " (default: all)")
     parser.add_argument("-o", "--out", metavar="OUT_DIR", default="comparison", help="output folder for comparison.{md,csv,json,png} (created; default %(default)s)")
-    parser.add_argument("--resolution", type=int, default=128, help="o3drbf marching-cubes resolution (default %(default)s)")
+    parser.add_argument("--resolution", type=int, default=DEFAULTS["resolution"], help="o3drbf marching-cubes resolution (default %(default)s)")
     parser.add_argument("--poisson-depth", type=int, default=8, help="Open3D Poisson octree depth (default %(default)s)")
     parser.add_argument("--density-quantile", type=float, default=0.0, help="Poisson: trim vertices below this density quantile (default %(default)s: closed surface)")
     parser.add_argument("--seed", type=int, default=0, help="sampling seed (default %(default)s)")
@@ -600,15 +620,12 @@ def main_compare(args: argparse.Namespace) -> int:
     Raises ``ValueError`` / ``FileNotFoundError`` on bad input (the CLI turns
     them into ``o3drbf: error: ...`` and exit status 2).
     """
-    from o3drbf.cli.commands import _read_input
+    from o3drbf.pointset import read_input
 
-    methods = parse_methods(getattr(args, "methods", None) or ",".join(METHODS))
+    methods = parse_methods(getattr(args, "methods", None) or ",".join(available_methods()))
     truth = _read_truth(args.truth) if getattr(args, "truth", None) else None
-    points, normals, cameras, point_camera = _read_input(args.input)
-    if getattr(args, "cameras", None):
-        from o3drbf.cameras.model import load_cameras
-
-        cameras, point_camera = load_cameras(args.cameras), None
+    data = read_input(args.input, cameras=getattr(args, "cameras", None))
+    points, normals, cameras, point_camera = data.points, data.normals, data.cameras, data.point_camera
     out = Path(getattr(args, "out", None) or "comparison")
     out.mkdir(parents=True, exist_ok=True)
     rows, meshes = compare_with_meshes(
@@ -618,7 +635,7 @@ def main_compare(args: argparse.Namespace) -> int:
         truth,
         methods,
         seed=getattr(args, "seed", 0),
-        resolution=getattr(args, "resolution", 128),
+        resolution=getattr(args, "resolution", DEFAULTS["resolution"]),
         poisson_depth=getattr(args, "poisson_depth", 8),
         density_quantile=getattr(args, "density_quantile", 0.0),
         point_camera=point_camera,

@@ -1,0 +1,299 @@
+"""One table of defaults, and the options of each stage of :func:`o3drbf.reconstruct`.
+
+:data:`DEFAULTS` is the single source of truth: the Python API, the command
+line, the viewer and ``o3drbf compare`` all build their :class:`Options`
+from it (``tests/test_options.py`` checks that they agree).  Lengths refer
+to the data normalized into the 2x2x2 box unless a name says otherwise.
+
+Options are grouped by stage in small frozen dataclasses; :meth:`Options.create`
+builds them from flat keyword names (``Options.create(surface_count=5000)``)
+and :meth:`Options.validate` checks every value before the first costly step.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields, replace
+
+from o3drbf.validation import check_choice, check_number
+
+__all__ = [
+    "DEFAULTS",
+    "OUTLIER_METHODS",
+    "PAPER_VALUES",
+    "VIEWER_OVERRIDES",
+    "SOLVER_METHODS",
+    "Options",
+    "OutlierOptions",
+    "ConstraintOptions",
+    "ParameterOptions",
+    "FitOptions",
+    "ExtractOptions",
+]
+
+#: Outlier handling: "auto" (free-space consistency with cameras, an
+#: isolated-point rule without, and robust reweighting in the fit), "none",
+#: "largest" (largest connected components), "statistical" (Open3D).
+OUTLIER_METHODS = ("auto", "none", "largest", "statistical")
+
+#: Solver methods (see :func:`o3drbf.solvers.solve`).
+SOLVER_METHODS = ("auto", "dense", "iterative", "fast")
+
+#: Every default of every entry point (normalized box units).
+DEFAULTS: dict = {
+    # outliers
+    "outliers": "auto",
+    "outlier_radius": None,  # data units; None: 3 mean spacings
+    "keep_components": 1,
+    # constraints
+    "surface_count": 3000,
+    "surface_radius": None,
+    "exterior_ratio": 0.1,
+    "exterior_offset": 0.05,
+    "sphere_count": 64,
+    # parameters
+    "kernel": "multiorder",
+    "auto": True,
+    "delta": None,  # multiorder; None: automatic (or the paper's 10 with auto=False)
+    "tau": None,  # multiorder; None: automatic (or the paper's 0.01)
+    "sigma": None,  # gaussian width; None: 0.1
+    "lambda_surface": None,  # None: automatic (or the paper's 1e-3)
+    "lambda_exterior": 2.0,
+    # fit
+    "solver": "auto",
+    "robust": True,
+    # extract
+    "resolution": 128,
+    "voxel_size": None,  # data units
+    "bounds": None,  # data units
+}
+
+#: The viewer's starting values where an interactive refit needs a lighter
+#: problem than a final reconstruction (everything else: :data:`DEFAULTS`).
+VIEWER_OVERRIDES = {"resolution": 64, "surface_count": 1500}
+
+#: The paper's fixed values, used for parameters left at None with ``auto=False``.
+PAPER_VALUES = {"delta": 10.0, "tau": 0.01, "sigma": 0.1, "lambda_surface": 1e-3}
+
+
+@dataclass(frozen=True)
+class OutlierOptions:
+    """Outlier handling before the constraints are built.
+
+    Attributes
+    ----------
+    method : {"auto", "none", "largest", "statistical"}
+    radius : float or None
+        Neighbourhood radius for "largest", data units (None: 3 mean spacings).
+    keep_components : int
+        Components kept by "largest".
+    """
+
+    method: str = DEFAULTS["outliers"]
+    radius: float | None = DEFAULTS["outlier_radius"]
+    keep_components: int = DEFAULTS["keep_components"]
+
+    def validate(self) -> "OutlierOptions":
+        check_choice("outliers", self.method, OUTLIER_METHODS)
+        if self.radius is not None:
+            check_number("outlier_radius", self.radius, low=0.0, low_open=True)
+        check_number("keep_components", self.keep_components, low=1, integer=True)
+        return self
+
+
+@dataclass(frozen=True)
+class ConstraintOptions:
+    """Which constraints are built (method.md section 4).
+
+    Attributes
+    ----------
+    surface_count : int or None
+        Poisson-disc subsample to about this many surface constraints (the
+        paper: 2,000-3,000); None keeps every point (or uses ``surface_radius``).
+    surface_radius : float or None
+        Poisson-disc radius (box units) instead of a count.
+    exterior_ratio : float
+        Exterior constraints per surface constraint, in [0, 1].
+    exterior_offset : float
+        Distance of exterior constraints from the surface (box units), in (0, 0.5].
+    sphere_count : int
+        Exterior constraints on a sphere around the data (0: none).
+    """
+
+    surface_count: int | None = DEFAULTS["surface_count"]
+    surface_radius: float | None = DEFAULTS["surface_radius"]
+    exterior_ratio: float = DEFAULTS["exterior_ratio"]
+    exterior_offset: float = DEFAULTS["exterior_offset"]
+    sphere_count: int = DEFAULTS["sphere_count"]
+
+    def validate(self) -> "ConstraintOptions":
+        if self.surface_count is not None:
+            check_number("surface_count", self.surface_count, low=10, integer=True)
+        if self.surface_radius is not None:
+            check_number("surface_radius", self.surface_radius, low=0.0, high=2.0, low_open=True)
+        check_number("exterior_ratio", self.exterior_ratio, low=0.0, high=1.0)
+        check_number("exterior_offset", self.exterior_offset, low=0.0, high=0.5, low_open=True)
+        check_number("sphere_count", self.sphere_count, low=0, high=100000, integer=True)
+        return self
+
+
+@dataclass(frozen=True)
+class ParameterOptions:
+    """The kernel and the smoothing.
+
+    Attributes
+    ----------
+    kernel : str or Kernel
+        A name in :data:`o3drbf.rbf.kernels.KERNELS` or a :class:`~o3drbf.rbf.kernels.Kernel`
+        instance (its parameters are then used as they are).
+    auto : bool
+        Choose the multi-order parameters left at None from the data
+        (:mod:`o3drbf.constraints.parameters`); else the paper's values.
+    delta, tau : float or None
+        Multi-order parameters.
+    sigma : float or None
+        Gaussian width.
+    lambda_surface : float, (N,) array_like or None
+        Smoothing of surface constraints (absolute, >= 0; per input point if an array).
+    lambda_exterior : float
+        Smoothing of exterior and sphere constraints, >= 0.
+    """
+
+    kernel: object = DEFAULTS["kernel"]
+    auto: bool = DEFAULTS["auto"]
+    delta: float | None = DEFAULTS["delta"]
+    tau: float | None = DEFAULTS["tau"]
+    sigma: float | None = DEFAULTS["sigma"]
+    lambda_surface: object = DEFAULTS["lambda_surface"]
+    lambda_exterior: float = DEFAULTS["lambda_exterior"]
+
+    def kernel_params(self) -> dict:
+        """The kernel parameters given (None dropped): ``make_kernel(kernel, **these)``."""
+        return {k: v for k, v in (("delta", self.delta), ("tau", self.tau), ("sigma", self.sigma)) if v is not None}
+
+    def validate(self) -> "ParameterOptions":
+        from o3drbf.rbf.kernels import Kernel, kernel_class, make_kernel
+
+        check_number("lambda_exterior", self.lambda_exterior, low=0.0)
+        if isinstance(self.kernel, Kernel):
+            if self.kernel_params():
+                raise ValueError(f"kernel is a {type(self.kernel).__name__} instance: give its parameters to it, not delta/tau/sigma")
+            return self
+        cls = kernel_class(self.kernel)
+        given = self.kernel_params()
+        wrong = sorted(set(given) - set(cls.parameter_names()))
+        if wrong:
+            raise ValueError(
+                f"{', '.join(wrong)} {'does' if len(wrong) == 1 else 'do'} not apply to the {cls.name!r} kernel "
+                f"(its parameters: {', '.join(cls.parameter_names()) or 'none'})"
+            )
+        make_kernel(cls.name, **{**{k: PAPER_VALUES[k] for k in cls.parameter_names() if k in PAPER_VALUES}, **given})
+        return self
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """The solve.
+
+    Attributes
+    ----------
+    solver : {"auto", "dense", "iterative", "fast"}
+    robust : bool
+        Iteratively reweighted fitting: surface constraints far from the
+        fitted surface relative to the noise are down-weighted (their lambda
+        raised) and refitted.
+    """
+
+    solver: str = DEFAULTS["solver"]
+    robust: bool = DEFAULTS["robust"]
+
+    def validate(self) -> "FitOptions":
+        check_choice("solver", self.solver, SOLVER_METHODS)
+        return self
+
+
+@dataclass(frozen=True)
+class ExtractOptions:
+    """Marching cubes.
+
+    Attributes
+    ----------
+    resolution : int
+        Cells along the longest side.
+    voxel_size : float or None
+        Grid spacing in data units (overrides ``resolution``).
+    bounds : (2, 3) array_like or None
+        Extraction box in data coordinates (default: the data's box, padded).
+    """
+
+    resolution: int = DEFAULTS["resolution"]
+    voxel_size: float | None = DEFAULTS["voxel_size"]
+    bounds: object = DEFAULTS["bounds"]
+
+    def validate(self) -> "ExtractOptions":
+        check_number("resolution", self.resolution, low=2, high=1024, integer=True)
+        if self.voxel_size is not None:
+            check_number("voxel_size", self.voxel_size, low=0.0, low_open=True)
+        return self
+
+
+#: Flat option name -> (group attribute, field name).
+_FLAT = {
+    "outliers": ("outliers", "method"),
+    "outlier_radius": ("outliers", "radius"),
+    "keep_components": ("outliers", "keep_components"),
+    **{f.name: ("constraints", f.name) for f in fields(ConstraintOptions)},
+    **{f.name: ("parameters", f.name) for f in fields(ParameterOptions)},
+    **{f.name: ("fit", f.name) for f in fields(FitOptions)},
+    **{f.name: ("extract", f.name) for f in fields(ExtractOptions)},
+}
+assert set(_FLAT) == set(DEFAULTS), set(_FLAT) ^ set(DEFAULTS)
+
+
+@dataclass(frozen=True)
+class Options:
+    """All options of :func:`o3drbf.reconstruct`, one group per stage."""
+
+    outliers: OutlierOptions = field(default_factory=OutlierOptions)
+    constraints: ConstraintOptions = field(default_factory=ConstraintOptions)
+    parameters: ParameterOptions = field(default_factory=ParameterOptions)
+    fit: FitOptions = field(default_factory=FitOptions)
+    extract: ExtractOptions = field(default_factory=ExtractOptions)
+
+    @classmethod
+    def create(cls, base: "Options | None" = None, **flat) -> "Options":
+        """Options from flat names (the keys of :data:`DEFAULTS`), over ``base``.
+
+        ``basis`` is accepted as another name for ``kernel``.
+
+        Raises
+        ------
+        ValueError
+            An unknown name (the message lists the valid ones).
+        """
+        if "basis" in flat:
+            if "kernel" in flat:
+                raise ValueError("give kernel or basis, not both")
+            flat["kernel"] = flat.pop("basis")
+        unknown = sorted(set(flat) - set(_FLAT))
+        if unknown:
+            raise ValueError(f"unknown option(s) {', '.join(unknown)}; valid: {', '.join(DEFAULTS)}")
+        opts = base or cls()
+        groups: dict[str, dict] = {}
+        for name, value in flat.items():
+            group, attr = _FLAT[name]
+            groups.setdefault(group, {})[attr] = value
+        return replace(opts, **{g: replace(getattr(opts, g), **v) for g, v in groups.items()})
+
+    def validate(self) -> "Options":
+        """Check every value; return self.  Raises ValueError naming the option."""
+        for f in fields(self):
+            getattr(self, f.name).validate()
+        return self
+
+    def flat(self) -> dict:
+        """The options as flat names (the keys of :data:`DEFAULTS`)."""
+        return {name: getattr(getattr(self, g), a) for name, (g, a) in _FLAT.items()}
+
+    def as_dict(self) -> dict:
+        """Nested plain dict (for reports)."""
+        return asdict(self)
