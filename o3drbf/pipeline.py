@@ -119,6 +119,11 @@ class ConstraintSet:
     spacing : float
         Mean nearest-neighbour spacing of the surface constraints (box units).
     points_seen_per_camera : list of int or None
+    bounds : (2, 3) ndarray
+        The extraction box (data coordinates): the points' box padded by 5 %.
+    exterior_offset : float
+        Box units.
+    normals_estimated : bool
     """
 
     constraints: Constraints
@@ -126,6 +131,9 @@ class ConstraintSet:
     surface_index: np.ndarray
     spacing: float
     points_seen_per_camera: list | None = None
+    bounds: np.ndarray | None = None
+    exterior_offset: float = 0.0
+    normals_estimated: bool = False
 
 
 @dataclass
@@ -385,7 +393,7 @@ def ensure_normals(data: PointSet, *, seed: int = 0) -> tuple[PointSet, bool]:
     if data.normals is not None or data.cameras is not None:
         return data, False
     log.info("no normals given: estimating and orienting normals with Open3D (30 neighbours)")
-    return data.with_normals(estimate_normals(data.points, seed=seed)), True
+    return data.with_normals(estimate_normals(data.points, seed=seed), estimated=True), True
 
 
 def build_constraints(data: PointSet, options: ConstraintOptions = ConstraintOptions(), *, seed: int = 0) -> ConstraintSet:
@@ -446,7 +454,10 @@ def build_constraints(data: PointSet, options: ConstraintOptions = ConstraintOpt
     )
     log.info("%d points -> %d surface, %d exterior, %d sphere constraints; mean spacing %.4f (box units)",
              len(pts), len(surf), len(ext), len(sph), spacing)
-    return ConstraintSet(constraints, norm, np.asarray(idx), spacing, seen)
+    lo, hi = data.bounds
+    pad = 0.05 * float((hi - lo).max())
+    return ConstraintSet(constraints, norm, np.asarray(idx), spacing, seen, np.stack([lo - pad, hi + pad]), options.exterior_offset,
+                         bool(data.normals_estimated))
 
 
 def choose_parameters(data: PointSet, cset: ConstraintSet, options: ParameterOptions = ParameterOptions(), *, seed: int = 0,
@@ -563,6 +574,17 @@ def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = F
     constraints = Constraints(c.points, c.values, params.smoothing, c.kind)
     surface, sol = fit(constraints, params.kernel, cset.normalization, solver=options.solver, progress=progress)
     robust = None
+    surface.metadata = {
+        "basis": params.kernel.to_dict(),
+        "lambda_surface": params.lambda_surface,
+        "lambda_exterior": params.lambda_exterior,
+        "exterior_offset": cset.exterior_offset,
+        "counts": cset.constraints.counts(),
+        "mean_spacing": cset.spacing,
+        "bounds": None if cset.bounds is None else cset.bounds.tolist(),
+        "normals_estimated": cset.normals_estimated,
+        "parameter_source": params.source,
+    }
     log.info("solved %d constraints (%s) in %.2f s, relative residual %.1e", len(constraints), sol.method, sol.seconds, sol.residual)
     return surface, sol, robust
 
@@ -685,20 +707,7 @@ def reconstruct(points, normals=None, *, cameras=None, point_camera=None, colors
         params = choose_parameters(data, cset, opts.parameters, seed=seed, confidence=outliers.confidence)
     with stages.stage("fit"):
         surface, sol, robust = fit_surface(cset, params, opts.fit, progress=progress)
-    lo, hi = data.bounds
-    pad = 0.05 * float((hi - lo).max())
-    surface.metadata = {
-        "basis": params.kernel.to_dict(),
-        "lambda_surface": params.lambda_surface,
-        "lambda_exterior": params.lambda_exterior,
-        "exterior_offset": opts.constraints.exterior_offset,
-        "counts": cset.constraints.counts(),
-        "mean_spacing": cset.spacing,
-        "seed": seed,
-        "bounds": [(lo - pad).tolist(), (hi + pad).tolist()],
-        "normals_estimated": estimated,
-        "parameter_source": params.source,
-    }
+    surface.metadata["seed"] = seed
     mesh = None
     if extract_mesh:
         with stages.stage("extract"):

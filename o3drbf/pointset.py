@@ -45,6 +45,8 @@ class PointSet:
         Where the data came from (a file name), for messages.
     camera_source : str
         The camera file, for messages.
+    normals_estimated : bool
+        The normals were estimated (not given).
     """
 
     points: np.ndarray
@@ -54,6 +56,7 @@ class PointSet:
     colors: np.ndarray | None = None
     source: str = ""
     camera_source: str = ""
+    normals_estimated: bool = False
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     @classmethod
@@ -125,9 +128,9 @@ class PointSet:
         return replace(self, points=self.points[keep], normals=pick(self.normals), point_camera=pick(self.point_camera),
                        colors=pick(self.colors), _cache={})
 
-    def with_normals(self, normals) -> "PointSet":
-        """The same points with these normals."""
-        return replace(self, normals=as_vectors(normals, len(self), name="normals"), _cache=self._cache)
+    def with_normals(self, normals, estimated: bool = False) -> "PointSet":
+        """The same points with these normals (``estimated``: not measured)."""
+        return replace(self, normals=as_vectors(normals, len(self), name="normals"), normals_estimated=bool(estimated), _cache=self._cache)
 
     @property
     def kdtree(self):
