@@ -148,6 +148,7 @@ class Parameters:
     lambda_surface : float
         Median surface smoothing.
     lambda_exterior : float
+        Absolute smoothing of exterior and sphere constraints (the option times phi(0)).
     source : dict
         For delta, tau, lambda_surface: "given", "auto" or "paper".
     auto : dict or None
@@ -515,7 +516,7 @@ def choose_parameters(data: PointSet, cset: ConstraintSet, options: ParameterOpt
         lam_points = per_point("lambda_surface", PAPER_VALUES["lambda_surface"] if options.lambda_surface is None else options.lambda_surface, n)
     if confidence is not None:
         lam_points = lam_points / np.clip(np.asarray(confidence, dtype=float), 1e-3, 1.0)
-    lam_e = float(options.lambda_exterior)
+    lam_e = float(options.lambda_exterior) * kernel.value_at_zero
     c = cset.constraints
     smoothing = np.where(c.kind == SURFACE, 0.0, lam_e)
     smoothing[c.kind == SURFACE] = lam_points[cset.surface_index]

@@ -140,3 +140,13 @@ def test_pointset_validates_once_and_caches_spacing():
     np.testing.assert_allclose(tp.normals, n / np.linalg.norm(n, axis=1, keepdims=True))
     sub = ps.subset(np.arange(100))
     assert len(sub) == 100 and sub.normals.shape == (100, 3)
+
+
+def test_lambda_exterior_is_relative_to_phi0_of_the_kernel_used():
+    p, n = Sphere(1.0).sample(800, seed=4)
+    for delta in (3.0, 20.0):
+        r = o3drbf.reconstruct(p, n, delta=delta, tau=0.01, surface_count=200, extract_mesh=False, outliers="none")
+        phi0 = r.surface.kernel.value_at_zero
+        ext = r.constraints.kind != 0
+        np.testing.assert_allclose(r.constraints.smoothing[ext], DEFAULTS["lambda_exterior"] * phi0)
+        assert r.report.parameters["lambda_exterior"] == pytest.approx(DEFAULTS["lambda_exterior"] * phi0)

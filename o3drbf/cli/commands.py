@@ -66,7 +66,7 @@ def add_option_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--sigma", type=float, default=d["sigma"], help=f"gaussian: width (default {PAPER_VALUES['sigma']:g})")
     g.add_argument("--lambda-surface", type=float, default=d["lambda_surface"],
                    help=f"smoothing of surface constraints, >= 0 (default: --auto, or {PAPER_VALUES['lambda_surface']:g})")
-    g.add_argument("--lambda-exterior", type=float, default=d["lambda_exterior"], help="smoothing of exterior constraints (default %(default)s)")
+    g.add_argument("--lambda-exterior", type=float, default=d["lambda_exterior"], help="smoothing of exterior constraints, relative to phi(0) of the kernel (default %(default)s)")
     g = parser.add_argument_group("outliers")
     g.add_argument("--outliers", default=d["outliers"], choices=list(OUTLIER_METHODS),
                    help="auto: free-space consistency with cameras, an isolated-point rule without, and a robust fit; "
