@@ -21,7 +21,7 @@ import numpy as np
 
 from o3drbf.cameras.model import Camera
 from o3drbf.io.files import atomic_path
-from o3drbf.synthetic.scans import _mesh_arrays, _scene
+from o3drbf.mesh.arrays import mesh_arrays, raycasting_scene
 
 __all__ = ["View", "render_views", "pixel_rays", "save_images"]
 
@@ -83,11 +83,7 @@ def pixel_rays(camera: Camera) -> np.ndarray:
         unit length: its camera-frame z component is 1, so the ray parameter of
         a hit is the depth (camera z) of the hit.
     """
-    cam = _pinhole([camera])[0]
-    u, v = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
-    pix = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], axis=1)
-    d = np.linalg.solve(cam.K, pix.T).T @ cam.R  # rows: R^T K^-1 [u v 1]
-    return np.hstack([np.broadcast_to(cam.center, d.shape), d])
+    return _pinhole([camera])[0].pixel_rays().reshape(-1, 6)
 
 
 def _vertex_colors(mesh, n: int, vertex_colors) -> np.ndarray:
@@ -139,13 +135,13 @@ def render_views(
     """
     import open3d as o3d
 
-    v, t = _mesh_arrays(mesh)
+    v, t = mesh_arrays(mesh)
     colors = _vertex_colors(mesh, len(v), vertex_colors)
     bg = np.asarray(background, dtype=float).reshape(-1)
     if bg.shape != (3,) or not np.isfinite(bg).all():
         raise ValueError(f"background must be an RGB triple, got {np.asarray(background).tolist()}")
     cams = _pinhole(cameras)
-    scene = _scene(v, t)
+    scene = raycasting_scene(v, t)
     views = []
     for cam in cams:
         rays = pixel_rays(cam)
