@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from o3drbf.cameras.model import Camera, quaternion_to_matrix
+from o3drbf.cameras.model import Camera, CameraSet, as_cameras, quaternion_to_matrix
 from o3drbf.prep.sampling import mean_spacing
 from o3drbf.rbf.kernels import MultiOrder
 from o3drbf.validation import as_rgb
@@ -49,6 +49,24 @@ def test_pixel_rays_project_back_to_their_pixel_centres():
     np.testing.assert_allclose(z, depth, rtol=1e-12)  # camera-z 1 directions: the ray parameter is the depth
     with pytest.raises(ValueError, match="pinhole camera with width and height"):
         Camera.from_center([0, 0, 1]).pixel_rays()
+
+
+def test_as_cameras_one_check_for_every_camera_list():
+    pin = Camera.look_at([0, 0, 5.0], [0, 0, 0], up=[0, 1, 0], width=8, height=6, name="p")
+    centre = Camera.from_center([1.0, 2, 3], name="c")
+    unsized = Camera(K=pin.K, R=pin.R, t=pin.t)
+    assert as_cameras(pin) == [pin]
+    assert as_cameras(CameraSet([pin, centre])) == [pin, centre]
+    assert as_cameras((pin, unsized), "images") == [pin, unsized]
+    assert as_cameras([], allow_empty=True) == []
+    for args, kwargs, message in [
+        (([],), {}, "cameras is empty"),
+        (([pin, "x"],), {}, "camera 1 is a str, not an o3drbf.cameras.model.Camera"),
+        (([pin, centre], "images"), {}, r"camera 1 \(c\) is a 'center' sensor; images need pinhole cameras"),
+        (([unsized], "images"), {"sized": True}, "camera 0 has no image size"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            as_cameras(*args, **kwargs)
 
 
 def test_quaternion_to_matrix_known_rotations():

@@ -52,6 +52,7 @@ __all__ = [
     "Camera",
     "CameraSet",
     "KINDS",
+    "as_cameras",
     "load_cameras",
     "load_range_scans",
     "save_cameras_json",
@@ -593,6 +594,46 @@ def _point_camera(w: _Where, values, n_points: int, n_cameras: int) -> np.ndarra
             f"point_camera[{i}]", f"camera index {pc[i]} is out of range: the file has {n_cameras} camera(s) (count mismatch)"
         )
     return pc
+
+
+def as_cameras(cameras, purpose: str | None = None, sized: bool = False, allow_empty: bool = False) -> list[Camera]:
+    """A camera, a :class:`CameraSet` or a sequence of cameras as a checked list.
+
+    Parameters
+    ----------
+    cameras : Camera, CameraSet or sequence of Camera
+    purpose : str, optional
+        When given, every camera must be a pinhole camera; the error says
+        ``"<purpose> need pinhole cameras"`` (e.g. ``"images"``).
+    sized : bool
+        Every camera must have ``width`` and ``height``.
+    allow_empty : bool
+        Accept no cameras at all.
+
+    Returns
+    -------
+    list of Camera
+
+    Raises
+    ------
+    ValueError
+        Something that is not a Camera, a camera of the wrong kind or
+        without an image size, or (unless ``allow_empty``) no cameras.
+    """
+    if isinstance(cameras, Camera):
+        cameras = [cameras]
+    cams = list(getattr(cameras, "cameras", cameras))
+    if not cams and not allow_empty:
+        raise ValueError("cameras is empty; give at least one Camera")
+    for i, cam in enumerate(cams):
+        label = f"camera {i}" + (f" ({cam.name})" if getattr(cam, "name", "") else "")
+        if not isinstance(cam, Camera):
+            raise ValueError(f"{label} is a {type(cam).__name__}, not an o3drbf.cameras.model.Camera")
+        if purpose is not None and cam.kind != "pinhole":
+            raise ValueError(f"{label} is a {cam.kind!r} sensor; {purpose} need pinhole cameras")
+        if sized and (cam.width is None or cam.height is None):
+            raise ValueError(f"{label} has no image size (width/height); {purpose or 'this'} needs one")
+    return cams
 
 
 def save_cameras_json(path: str | os.PathLike, cameras, points=None, point_camera=None, colors=None) -> Path:

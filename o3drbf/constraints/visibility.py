@@ -32,6 +32,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from o3drbf.cameras.model import as_cameras
 from o3drbf.mesh.arrays import mesh_arrays, raycasting_scene
 from o3drbf.prep.sampling import mean_spacing
 from o3drbf.validation import as_points, check_number
@@ -55,18 +56,6 @@ MAX_GRID_CELLS = 64_000_000
 RAY_CHUNK = 2_000_000
 #: Exterior candidates kept per wanted exterior point before Poisson-disc.
 OVERSAMPLE = 2
-
-
-def _cameras(cameras) -> list:
-    from o3drbf.cameras.model import Camera
-
-    cams = list(cameras) if not isinstance(cameras, Camera) else [cameras]
-    if not cams:
-        raise ValueError("cameras is empty; at least one camera is needed")
-    for i, c in enumerate(cams):
-        if not isinstance(c, Camera):
-            raise ValueError(f"cameras[{i}] is a {type(c).__name__}, not an o3drbf.cameras.model.Camera")
-    return cams
 
 
 def _threads() -> int:
@@ -359,7 +348,7 @@ def visibility(
         Bad input; with ``strict``, cameras that see nothing (named).
     """
     pts = as_points(points)
-    cams = _cameras(cameras)
+    cams = as_cameras(cameras)
     visible, _, _ = _visibility(pts, cams, occluder, voxel_size, margin, point_camera, strict, rays)
     return visible
 
@@ -424,7 +413,7 @@ def exterior_constraints(
     from o3drbf.prep.sampling import poisson_disc
 
     pts = as_points(points)
-    cams = _cameras(cameras)
+    cams = as_cameras(cameras)
     n, c = len(pts), len(cams)
     offset = check_number("offset", offset, low=0.0, low_open=True)
     ratio = check_number("ratio", ratio, low=0.0, low_open=True)

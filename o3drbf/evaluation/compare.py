@@ -37,7 +37,6 @@ import csv
 import io as _io
 import json
 import math
-import os
 import threading
 import time
 import tracemalloc

@@ -32,7 +32,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from o3drbf.validation import as_points, as_rgb, as_vectors, check_choice, check_number
-from o3drbf.cameras.model import Camera
+from o3drbf.cameras.model import Camera, as_cameras
 from o3drbf.mesh.arrays import mesh_arrays, raycasting_scene, unique_edges
 
 __all__ = [
@@ -88,18 +88,6 @@ class ColorResult:
 
 
 # -- inputs -------------------------------------------------------------------
-
-
-def _cameras(cameras) -> list[Camera]:
-    if isinstance(cameras, Camera):
-        cameras = [cameras]
-    cams = list(getattr(cameras, "cameras", cameras))
-    for i, cam in enumerate(cams):
-        if not isinstance(cam, Camera):
-            raise ValueError(f"camera {i} is a {type(cam).__name__}, not an o3drbf.cameras.model.Camera")
-        if cam.kind != "pinhole":
-            raise ValueError(f"camera {i} {_name(cam)}is a {cam.kind!r} sensor; colour from images needs pinhole cameras")
-    return cams
 
 
 def _name(cam) -> str:
@@ -247,7 +235,7 @@ def colors_from_images(
     import open3d as o3d
 
     v, t = mesh_arrays(mesh)
-    cams = _cameras(cameras)
+    cams = as_cameras(cameras, "colours from images", allow_empty=True)
     images = list(images)
     if len(cams) != len(images):
         raise ValueError(f"got {len(cams)} camera(s) and {len(images)} image(s); give one image per camera")
@@ -348,7 +336,7 @@ def subdivide_for_images(mesh, cameras: Sequence[Camera], pixels_per_edge: float
     pixels_per_edge = check_number("pixels_per_edge", pixels_per_edge, low=0.0, low_open=True)
     max_triangles = check_number("max_triangles", max_triangles, low=1, integer=True)
     v, t = mesh_arrays(mesh)
-    cams = _cameras(cameras)
+    cams = as_cameras(cameras, "colours from images", allow_empty=True)
     lengths = [np.empty(0)]
     edges = unique_edges(t)[0]
     for cam in cams:
