@@ -64,9 +64,9 @@ def scanner_oriented_normals(points, point_camera, cameras, k: int = 30):
 def render(panels, path: Path, views=(("front", (0.0, 0.15, 1.0)), ("underneath", (0.3, -1.0, 0.25))), size=450) -> Path:
     """Meshes in columns, one row per view, the bunny's +y up (offscreen PyVista)."""
     from o3drbf.io.files import atomic_path
-    from o3drbf.pictures import _headless, to_pyvista
+    from o3drbf.pictures import headless, to_pyvista
 
-    _headless()
+    headless()
     import pyvista as pv
 
     plotter = pv.Plotter(shape=(len(views), len(panels)), off_screen=True, window_size=[size * len(panels), size * len(views)], border=False)

@@ -117,7 +117,7 @@ def run_one(args) -> dict:
         res["poisson_s"] = time.perf_counter() - t
         return res
     if n > args.max_run:
-        grid_need = fast._Mesh.nbytes(c.min(0), c.max(0), *_grid_spacing(kernel, c))
+        grid_need = fast.grid_bytes(c.min(0), c.max(0), *_grid_spacing(kernel, c))
         over = grid_need > fast.GRID_BUDGET
         res["refused"] = (f"refused up front (above --max-run {args.max_run}): fast solve memory estimate "
                           f"{need / 2**30:.1f} GB (limit {limit / 2**30:.1f} GB); grid backend FFT arrays "

@@ -10,12 +10,16 @@ import numpy as np
 
 from o3drbf.io.files import atomic_path
 
-__all__ = ["to_pyvista", "side_by_side"]
+__all__ = ["headless", "to_pyvista", "side_by_side"]
 
 
-def _headless() -> None:
-    """Without a display, ask VTK for an EGL window straight away (instead of
-    failing over from X with a warning).  Only when the user has not chosen."""
+def headless() -> None:
+    """Prepare VTK for rendering without a display; call before importing PyVista.
+
+    Without ``DISPLAY``, asks VTK for an EGL window straight away (instead of
+    failing over from X with a warning).  Only when the user has not chosen
+    (``VTK_DEFAULT_OPENGL_WINDOW`` unset); otherwise does nothing.
+    """
     if not os.environ.get("DISPLAY") and "VTK_DEFAULT_OPENGL_WINDOW" not in os.environ:
         os.environ["VTK_DEFAULT_OPENGL_WINDOW"] = "vtkEGLRenderWindow"
 
@@ -45,7 +49,7 @@ def side_by_side(panels, path: str | os.PathLike, window_size=(1600, 800), point
     viewup : 3-tuple
         The data's up axis (e.g. (0, 1, 0) for the Stanford bunny).
     """
-    _headless()
+    headless()
     import pyvista as pv
 
     path = Path(path)

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["as_points", "as_vectors", "check_number", "per_point", "check_choice"]
+__all__ = ["as_points", "as_vectors", "as_rgb", "check_number", "per_point", "check_choice"]
 
 
 def as_points(points: Any, name: str = "points", min_count: int = 1, allow_duplicates: bool = True) -> np.ndarray:
@@ -113,3 +113,47 @@ def check_choice(name: str, value: Any, choices) -> str:
     if value not in choices:
         raise ValueError(f"{name} must be one of {', '.join(map(repr, choices))}, got {value!r}")
     return value
+
+
+def as_rgb(image: Any, name: str = "image", dtype: Any = np.float64) -> np.ndarray:
+    """Coerce an image to ``(H, W, 3)`` RGB in ``[0, 1]``: the one rule for image arrays.
+
+    Parameters
+    ----------
+    image : (H, W, 3), (H, W, 4) or (H, W) array_like
+        RGB, RGBA (alpha dropped) or grey (repeated into three channels).
+        Integers (``uint8``, ``uint16``, ...) are divided by their dtype's
+        maximum; floats must already lie in ``[0, 1]``.
+    name : str
+        What to call the image in error messages.
+    dtype : numpy float dtype
+        Of the result (``float32`` halves the memory of large photographs).
+
+    Returns
+    -------
+    (H, W, 3) array of ``dtype``
+
+    Raises
+    ------
+    ValueError
+        Another shape, an empty image, a boolean or non-numeric dtype,
+        negative integers, or floats that are not finite or outside ``[0, 1]``.
+    """
+    a = np.asarray(image)
+    if a.ndim == 2:
+        a = np.repeat(a[:, :, None], 3, axis=2)
+    if a.ndim != 3 or a.shape[2] not in (3, 4) or a.shape[0] < 1 or a.shape[1] < 1:
+        raise ValueError(f"{name}: expected an (H, W, 3) colour, (H, W, 4) RGBA or (H, W) grey image, got shape {a.shape}")
+    a = a[:, :, :3]
+    if a.dtype != bool and np.issubdtype(a.dtype, np.integer):
+        if np.issubdtype(a.dtype, np.signedinteger) and a.min() < 0:
+            raise ValueError(f"{name}: negative integer pixel values; give unsigned integers or floats in [0, 1]")
+        return a.astype(dtype) / np.asarray(np.iinfo(a.dtype).max, dtype=dtype)
+    if not np.issubdtype(a.dtype, np.floating):
+        raise ValueError(f"{name} has dtype {a.dtype}; expected unsigned integers (uint8, uint16) or floats in [0, 1]")
+    a = a.astype(dtype)
+    if not np.isfinite(a).all():
+        raise ValueError(f"{name}: NaN or infinite pixel values")
+    if a.min() < 0 or a.max() > 1:
+        raise ValueError(f"{name}: float pixel values outside [0, 1] (range [{a.min():.3g}, {a.max():.3g}]); scale them to [0, 1] or give uint8")
+    return a

@@ -225,7 +225,7 @@ def parse_script(text: str) -> list[tuple]:
 
 
 def _headless() -> None:
-    from o3drbf.pictures import _headless as headless
+    from o3drbf.pictures import headless
 
     headless()
 

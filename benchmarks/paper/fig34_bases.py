@@ -43,9 +43,9 @@ def _surface_count(n_total: int) -> int:
 def plot(times, path: Path) -> str:
     """Solve time vs N, one line per basis (PyVista Chart2D, offscreen)."""
     from o3drbf.io.files import atomic_path
-    from o3drbf.pictures import _headless
+    from o3drbf.pictures import headless
 
-    _headless()
+    headless()
     import pyvista as pv
 
     chart = pv.Chart2D(x_label="constraints N", y_label="dense solve time (s)")

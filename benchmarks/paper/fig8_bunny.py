@@ -36,9 +36,9 @@ PAPER = {"surface": 2168, "exterior": 193, "spacing": 0.051, "delta": 10.0, "tau
 def render(mesh, surface_pts, exterior_pts, path: Path, window_size=(1800, 600)) -> Path:
     """Three views of the mesh with the constraints drawn as squares (blue surface, green exterior)."""
     from o3drbf.io.files import atomic_path
-    from o3drbf.pictures import _headless, to_pyvista
+    from o3drbf.pictures import headless, to_pyvista
 
-    _headless()
+    headless()
     import pyvista as pv
 
     views = [("front", (0.0, 0.15, 1.0)), ("back", (0.0, 0.15, -1.0)), ("underneath", (0.3, -1.0, 0.25))]

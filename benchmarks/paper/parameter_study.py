@@ -40,9 +40,9 @@ GRIDS = {
 def plot(results, path: Path) -> str:
     """Fitness error (mean) and average curvature vs each parameter, one chart per parameter."""
     from o3drbf.io.files import atomic_path
-    from o3drbf.pictures import _headless
+    from o3drbf.pictures import headless
 
-    _headless()
+    headless()
     import pyvista as pv
 
     plotter = pv.Plotter(shape=(2, len(GRIDS)), off_screen=True, window_size=[1500, 800], border=False)

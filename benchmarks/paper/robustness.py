@@ -232,9 +232,9 @@ def table(rows) -> str:
 def plot(rows, path: Path) -> str:
     """Chamfer L1 vs noise, one line per mesh x method, one panel per (outliers, views)."""
     from o3drbf.io.files import atomic_path
-    from o3drbf.pictures import _headless
+    from o3drbf.pictures import headless
 
-    _headless()
+    headless()
     import pyvista as pv
 
     colours = {"multiorder-auto": "#1f4fd1", "multiorder-paper": "#6fa8ff", "poisson": "#cc3311", "poisson-trim": "#ff9966"}

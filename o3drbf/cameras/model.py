@@ -40,7 +40,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator, Sequence
@@ -53,6 +52,7 @@ __all__ = [
     "Camera",
     "CameraSet",
     "KINDS",
+    "as_cameras",
     "load_cameras",
     "load_range_scans",
     "save_cameras_json",
@@ -83,14 +83,9 @@ def quaternion_to_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
     n = float(np.linalg.norm(q))
     if not np.isfinite(q).all() or n == 0:
         raise ValueError(f"quaternion (x, y, z, w) = {q.tolist()} is not a finite non-zero quaternion")
-    x, y, z, w = q / n
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_quat(q / n).as_matrix()  # scipy's order is scalar-last (x, y, z, w)
 
 
 def _unit_quaternion(q: Sequence[float], tolerance: float = 1e-3) -> np.ndarray:
@@ -288,6 +283,35 @@ class Camera:
         pixels[front, 0] = K[0, 0] * x + K[0, 1] * y + K[0, 2]
         pixels[front, 1] = K[1, 1] * y + K[1, 2]
         return pixels, depth
+
+    def pixel_rays(self, stride: int = 1, unit: bool = False) -> np.ndarray:
+        """Rays from the camera centre through pixel centres (pinhole cameras with an image size).
+
+        Parameters
+        ----------
+        stride : int
+            Every ``stride``-th pixel in each direction (1: all).
+        unit : bool
+            Unit-length directions.  Default: directions whose camera-frame z
+            component is 1, so a hit's ray parameter is its depth (camera z).
+
+        Returns
+        -------
+        (H', W', 6) float64 array
+            Origin (the camera centre) and direction ``R^T K^-1 [u + 0.5, v + 0.5, 1]``
+            for the pixel in row ``v``, column ``u``; ``H' = ceil(H / stride)``,
+            ``W' = ceil(W / stride)``.
+        """
+        if self.kind != "pinhole" or self.width is None or self.height is None:
+            raise ValueError(f"pixel rays need a pinhole camera with width and height; camera {self.name!r} is {self.kind} {self.width}x{self.height}")
+        stride = check_number("stride", stride, low=1, integer=True)
+        uu, vv = np.meshgrid(np.arange(0, self.width, stride) + 0.5, np.arange(0, self.height, stride) + 0.5)
+        pix = np.stack([uu, vv, np.ones_like(uu)], axis=-1)
+        d = np.linalg.solve(self.K, pix.reshape(-1, 3).T).T @ self.R  # rows: R^T K^-1 [u v 1]
+        if unit:
+            d /= np.linalg.norm(d, axis=1, keepdims=True)
+        d = d.reshape(pix.shape)
+        return np.concatenate([np.broadcast_to(self.center, d.shape), d], axis=-1)
 
     def in_view(self, points):
         """In front of the camera, and inside its image.
@@ -572,6 +596,46 @@ def _point_camera(w: _Where, values, n_points: int, n_cameras: int) -> np.ndarra
     return pc
 
 
+def as_cameras(cameras, purpose: str | None = None, sized: bool = False, allow_empty: bool = False) -> list[Camera]:
+    """A camera, a :class:`CameraSet` or a sequence of cameras as a checked list.
+
+    Parameters
+    ----------
+    cameras : Camera, CameraSet or sequence of Camera
+    purpose : str, optional
+        When given, every camera must be a pinhole camera; the error says
+        ``"<purpose> need pinhole cameras"`` (e.g. ``"images"``).
+    sized : bool
+        Every camera must have ``width`` and ``height``.
+    allow_empty : bool
+        Accept no cameras at all.
+
+    Returns
+    -------
+    list of Camera
+
+    Raises
+    ------
+    ValueError
+        Something that is not a Camera, a camera of the wrong kind or
+        without an image size, or (unless ``allow_empty``) no cameras.
+    """
+    if isinstance(cameras, Camera):
+        cameras = [cameras]
+    cams = list(getattr(cameras, "cameras", cameras))
+    if not cams and not allow_empty:
+        raise ValueError("cameras is empty; give at least one Camera")
+    for i, cam in enumerate(cams):
+        label = f"camera {i}" + (f" ({cam.name})" if getattr(cam, "name", "") else "")
+        if not isinstance(cam, Camera):
+            raise ValueError(f"{label} is a {type(cam).__name__}, not an o3drbf.cameras.model.Camera")
+        if purpose is not None and cam.kind != "pinhole":
+            raise ValueError(f"{label} is a {cam.kind!r} sensor; {purpose} need pinhole cameras")
+        if sized and (cam.width is None or cam.height is None):
+            raise ValueError(f"{label} has no image size (width/height); {purpose or 'this'} needs one")
+    return cams
+
+
 def save_cameras_json(path: str | os.PathLike, cameras, points=None, point_camera=None, colors=None) -> Path:
     """Write cameras (and optionally points) in the JSON format, atomically.
 
@@ -620,30 +684,16 @@ def save_cameras_json(path: str | os.PathLike, cameras, points=None, point_camer
 # -- Middlebury -------------------------------------------------------------
 
 
-def _png_size(path: Path) -> tuple[int, int] | None:
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(24)
-    except OSError:
+def _image_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) of an image file from its header (Pillow, lazy: no pixels decoded), or None if unknown."""
+    if not path.is_file():
         return None
-    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
-        return None
-    return struct.unpack(">II", head[16:24])
+    from PIL import Image
 
-
-def _image_size(path: Path):
-    """(width, height) of an image file, or None if unknown (PNG header, else Pillow if installed)."""
-    size = _png_size(path)
-    if size is not None or not path.exists():
-        return size
-    try:
-        from PIL import Image  # optional
-    except ImportError:
-        return None
     try:
         with Image.open(path) as im:
             return im.size
-    except OSError:
+    except (OSError, ValueError):  # unreadable, or not an image format Pillow knows
         return None
 
 

@@ -29,8 +29,12 @@ import os
 from typing import Any
 
 import numpy as np
+from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from o3drbf.cameras.model import as_cameras
+from o3drbf.mesh.arrays import mesh_arrays, raycasting_scene
+from o3drbf.prep.sampling import mean_spacing
 from o3drbf.validation import as_points, check_number
 
 __all__ = ["visibility", "exterior_constraints", "occupancy_mesh"]
@@ -54,18 +58,6 @@ RAY_CHUNK = 2_000_000
 OVERSAMPLE = 2
 
 
-def _cameras(cameras) -> list:
-    from o3drbf.cameras.model import Camera
-
-    cams = list(cameras) if not isinstance(cameras, Camera) else [cameras]
-    if not cams:
-        raise ValueError("cameras is empty; at least one camera is needed")
-    for i, c in enumerate(cams):
-        if not isinstance(c, Camera):
-            raise ValueError(f"cameras[{i}] is a {type(c).__name__}, not an o3drbf.cameras.model.Camera")
-    return cams
-
-
 def _threads() -> int:
     """CPUs this process may use (Open3D's automatic choice oversubscribes shared machines)."""
     try:
@@ -82,29 +74,10 @@ def _spacing(points: np.ndarray, tree: cKDTree | None = None, sample: int = 20_0
     """Mean nearest-neighbour distance, estimated from a random subset of queries."""
     if len(points) < 2:
         raise ValueError("at least 2 points are needed to estimate their spacing")
-    tree = cKDTree(points) if tree is None else tree
-    rng = np.random.default_rng(seed)
-    q = points if len(points) <= sample else points[rng.choice(len(points), sample, replace=False)]
-    d, _ = tree.query(q, k=2, workers=-1)
-    spacing = float(d[:, 1].mean())
+    spacing = mean_spacing(points, sample=sample, tree=tree, seed=seed)
     if spacing <= 0:
         raise ValueError("points are (mostly) duplicates: their mean spacing is zero")
     return spacing
-
-
-def _dilate(occ: np.ndarray, iterations: int) -> np.ndarray:
-    """Dilation by the 3x3x3 cube, as three separable 1-D passes per iteration."""
-    for _ in range(iterations):
-        for axis in range(3):
-            out = occ.copy()
-            lo = [slice(None)] * 3
-            hi = [slice(None)] * 3
-            lo[axis] = slice(0, -1)
-            hi[axis] = slice(1, None)
-            out[tuple(lo)] |= occ[tuple(hi)]
-            out[tuple(hi)] |= occ[tuple(lo)]
-            occ = out
-    return occ
 
 
 def _occupancy(points: np.ndarray, voxel_size: float):
@@ -123,7 +96,7 @@ def _occupancy(points: np.ndarray, voxel_size: float):
     ijk = np.floor((points - origin) / voxel_size).astype(np.int64)
     occ = np.zeros(ijk.max(axis=0) + pad + 1, dtype=bool)
     occ[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
-    return _dilate(occ, DILATION), origin, voxel_size
+    return ndimage.binary_dilation(occ, structure=np.ones((3, 3, 3), bool), iterations=DILATION), origin, voxel_size
 
 
 def _boundary_faces(occ: np.ndarray, origin: np.ndarray, voxel_size: float):
@@ -193,25 +166,6 @@ def occupancy_mesh(points, voxel_size: float):
     return verts, tri, vs
 
 
-def _scene(vertices: np.ndarray, triangles: np.ndarray):
-    import open3d as o3d
-
-    scene = o3d.t.geometry.RaycastingScene()
-    if len(triangles):
-        scene.add_triangles(
-            o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
-            o3d.core.Tensor(np.ascontiguousarray(triangles, dtype=np.uint32)),
-        )
-    return scene
-
-
-def _mesh_arrays(mesh):
-    """Vertices and triangles of an Open3D (legacy or tensor) triangle mesh."""
-    if hasattr(mesh, "vertex") and hasattr(mesh, "triangle"):  # tensor mesh
-        return mesh.vertex.positions.numpy().astype(float), mesh.triangle.indices.numpy()
-    return np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.triangles)
-
-
 def _known(point_camera, n: int, c: int) -> np.ndarray | None:
     if point_camera is None:
         return None
@@ -259,12 +213,12 @@ def _resolve_occluder(pts, occluder, voxel_size, margin, tree=None):
     if isinstance(occluder, str) and occluder == "none":
         return None, voxel_size, 0.0, ref
     if ref is None:
-        verts, tri = _mesh_arrays(occluder)
+        verts, tri = mesh_arrays(occluder, "occluder")
     else:
         occ, origin, voxel_size = _occupancy(ref, voxel_size)
         verts, tri = _boundary_faces(occ, origin, voxel_size)
     margin = MARGIN_VOXELS * voxel_size if margin is None else check_number("margin", margin, low=0.0)
-    return _scene(verts, tri), voxel_size, margin, ref
+    return raycasting_scene(verts, tri), voxel_size, margin, ref
 
 
 def _unobstructed(scene, cam, origins: np.ndarray, margin: float, span: float) -> np.ndarray:
@@ -394,7 +348,7 @@ def visibility(
         Bad input; with ``strict``, cameras that see nothing (named).
     """
     pts = as_points(points)
-    cams = _cameras(cameras)
+    cams = as_cameras(cameras)
     visible, _, _ = _visibility(pts, cams, occluder, voxel_size, margin, point_camera, strict, rays)
     return visible
 
@@ -459,7 +413,7 @@ def exterior_constraints(
     from o3drbf.prep.sampling import poisson_disc
 
     pts = as_points(points)
-    cams = _cameras(cameras)
+    cams = as_cameras(cameras)
     n, c = len(pts), len(cams)
     offset = check_number("offset", offset, low=0.0, low_open=True)
     ratio = check_number("ratio", ratio, low=0.0, low_open=True)

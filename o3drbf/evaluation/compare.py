@@ -24,8 +24,8 @@ reports its buffers to tracemalloc); memory allocated inside Open3D's or
 Numba's compiled code is *not*, so for the Open3D methods it is a lower
 bound.  ``rss_peak_mb`` in the table sees every allocation, Open3D's too:
 the peak of the process's resident set above its level when the method
-started, sampled every 5 ms from ``/proc/self/statm`` by a background thread
-(Linux; None elsewhere; allocations shorter than 5 ms can be missed, and
+started, sampled every 5 ms with psutil by a background thread
+(None where psutil cannot read it; allocations shorter than 5 ms can be missed, and
 pages freed earlier but kept by the allocator are not counted again).
 Times are wall-clock seconds with tracemalloc on.
 """
@@ -37,7 +37,6 @@ import csv
 import io as _io
 import json
 import math
-import os
 import threading
 import time
 import tracemalloc
@@ -46,6 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from o3drbf.options import DEFAULTS
+from o3drbf.prep.sampling import mean_spacing
 from o3drbf.validation import as_points, check_number
 
 __all__ = [
@@ -128,15 +128,6 @@ def parse_methods(methods) -> tuple[str, ...]:
     if unknown:
         raise ValueError(f"unknown method(s) {', '.join(map(repr, unknown))}; valid methods: {', '.join(valid)}")
     return tuple(dict.fromkeys(names))  # drop repeats, keep order
-
-
-def mean_spacing(points) -> float:
-    """Mean distance from each point to its nearest neighbour."""
-    from scipy.spatial import cKDTree
-
-    pts = as_points(points, min_count=2)
-    d, _ = cKDTree(pts).query(pts, k=2)
-    return float(d[:, 1].mean())
 
 
 def _camera_list(cameras):
@@ -310,20 +301,22 @@ def run_method(name: str, points, normals=None, cameras=None, **options):
 
 
 class _RssPeak:
-    """Peak resident-set growth while the ``with`` block runs (Linux
-    ``/proc/self/statm``, sampled every ``interval`` s); ``None`` elsewhere."""
+    """Peak resident-set growth while the ``with`` block runs (psutil's RSS,
+    sampled every ``interval`` s); ``None`` where psutil cannot read it."""
 
     def __init__(self, interval: float = 0.005):
+        import psutil
+
         self.interval = interval
         self.peak_bytes = None
         self._stop = threading.Event()
+        self._process = psutil.Process()
+        self._errors = (psutil.Error, OSError)
 
-    @staticmethod
-    def _rss():
+    def _rss(self):
         try:
-            with open("/proc/self/statm") as fh:
-                return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
-        except (OSError, ValueError, IndexError):
+            return int(self._process.memory_info().rss)
+        except self._errors:
             return None
 
     def _poll(self):
@@ -388,9 +381,9 @@ def _measure(row, mesh, points, truth, threshold, n_samples, seed):
 
 
 def _check_truth(truth):
-    from o3drbf.mesh.metrics import _mesh_arrays
+    from o3drbf.mesh.arrays import mesh_arrays
 
-    verts, _ = _mesh_arrays(truth, "truth")
+    verts, _ = mesh_arrays(truth, "truth")
     return verts
 
 

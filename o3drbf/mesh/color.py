@@ -31,8 +31,9 @@ from typing import Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
-from o3drbf.validation import as_points, as_vectors, check_choice, check_number
-from o3drbf.cameras.model import Camera
+from o3drbf.validation import as_points, as_rgb, as_vectors, check_choice, check_number
+from o3drbf.cameras.model import Camera, as_cameras
+from o3drbf.mesh.arrays import mesh_arrays, raycasting_scene, unique_edges
 
 __all__ = [
     "ColorResult",
@@ -89,46 +90,8 @@ class ColorResult:
 # -- inputs -------------------------------------------------------------------
 
 
-def _mesh(mesh) -> tuple[np.ndarray, np.ndarray]:
-    from o3drbf.synthetic.scans import _mesh_arrays
-
-    return _mesh_arrays(mesh)
-
-
-def _cameras(cameras) -> list[Camera]:
-    if isinstance(cameras, Camera):
-        cameras = [cameras]
-    cams = list(getattr(cameras, "cameras", cameras))
-    for i, cam in enumerate(cams):
-        if not isinstance(cam, Camera):
-            raise ValueError(f"camera {i} is a {type(cam).__name__}, not an o3drbf.cameras.model.Camera")
-        if cam.kind != "pinhole":
-            raise ValueError(f"camera {i} {_name(cam)}is a {cam.kind!r} sensor; colour from images needs pinhole cameras")
-    return cams
-
-
 def _name(cam) -> str:
     return f"({cam.name}) " if getattr(cam, "name", "") else ""
-
-
-def _image(image, i: int) -> np.ndarray:
-    """An image as (H, W, 3) float64 in [0, 1]: uint8 / 255, uint16 / 65535, floats as they are."""
-    arr = np.asarray(image)
-    if arr.ndim == 2:
-        arr = np.repeat(arr[:, :, None], 3, axis=2)
-    if arr.ndim != 3 or arr.shape[2] not in (3, 4) or arr.shape[0] == 0 or arr.shape[1] == 0:
-        raise ValueError(f"image {i} must be (H, W, 3) RGB (or (H, W) grey, or RGBA), got shape {arr.shape}")
-    arr = arr[:, :, :3]
-    if arr.dtype == np.uint8:
-        return arr / 255.0
-    if arr.dtype == np.uint16:
-        return arr / 65535.0
-    if not np.issubdtype(arr.dtype, np.floating):
-        raise ValueError(f"image {i} has dtype {arr.dtype}; expected uint8, uint16 or floats in [0, 1]")
-    arr = arr.astype(float)
-    if not np.isfinite(arr).all() or arr.min() < 0 or arr.max() > 1:
-        raise ValueError(f"image {i} is floating point with values outside [0, 1]; scale it to [0, 1] (or give uint8)")
-    return arr
 
 
 def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -152,7 +115,7 @@ def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """
     v = np.asarray(vertices, dtype=float)
     t = np.asarray(triangles, dtype=np.int64)
-    return _vertex_normals(v, t, bool((_edges(t, counts=True)[1] == 2).all()))
+    return _vertex_normals(v, t, bool((unique_edges(t)[2] == 2).all()))
 
 
 def _vertex_normals(v: np.ndarray, t: np.ndarray, closed: bool) -> np.ndarray:
@@ -165,31 +128,18 @@ def _vertex_normals(v: np.ndarray, t: np.ndarray, closed: bool) -> np.ndarray:
     return np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
 
 
-def _edges(triangles: np.ndarray, counts: bool = False):
-    """Unique undirected edges ``(E, 2)`` of a triangle list (and how many triangles share each)."""
-    t = np.asarray(triangles, dtype=np.int64)
-    a = t.ravel()
-    b = t[:, [1, 2, 0]].ravel()
-    n = int(t.max()) + 1
-    keys, count = np.unique(np.minimum(a, b) * n + np.maximum(a, b), return_counts=True)  # 1-D keys: fast
-    edges = np.column_stack([keys // n, keys % n])
-    return (edges, count) if counts else edges
-
-
 def _bilinear(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
-    """Sample ``image`` at continuous pixel coordinates (pixel ``(i, j)`` has its centre at ``(j + .5, i + .5)``)."""
-    h, w = image.shape[:2]
-    x = np.clip(pixels[:, 0] - 0.5, 0.0, w - 1.0)
-    y = np.clip(pixels[:, 1] - 0.5, 0.0, h - 1.0)
-    x0 = np.minimum(np.floor(x).astype(np.int64), max(w - 2, 0))
-    y0 = np.minimum(np.floor(y).astype(np.int64), max(h - 2, 0))
-    x1 = np.minimum(x0 + 1, w - 1)
-    y1 = np.minimum(y0 + 1, h - 1)
-    fx = (x - x0)[:, None]
-    fy = (y - y0)[:, None]
-    top = image[y0, x0] * (1 - fx) + image[y0, x1] * fx
-    bottom = image[y1, x0] * (1 - fx) + image[y1, x1] * fx
-    return top * (1 - fy) + bottom * fy
+    """Sample an ``(H, W, C)`` image bilinearly at continuous pixel coordinates ``(N, 2)`` (u, v), giving ``(N, C)``.
+
+    Pixel ``(i, j)`` has its centre at ``(j + .5, i + .5)``; outside the
+    centres the edge pixels extend (``scipy.ndimage.map_coordinates``, order 1,
+    mode "nearest").
+    """
+    from scipy import ndimage
+
+    rows, cols = pixels[:, 1] - 0.5, pixels[:, 0] - 0.5
+    coords = np.stack([rows, cols])
+    return np.column_stack([ndimage.map_coordinates(image[:, :, c], coords, order=1, mode="nearest") for c in range(image.shape[2])])
 
 
 def _diffuse(colors: np.ndarray, known: np.ndarray, edges: np.ndarray) -> np.ndarray:
@@ -284,8 +234,8 @@ def colors_from_images(
     """
     import open3d as o3d
 
-    v, t = _mesh(mesh)
-    cams = _cameras(cameras)
+    v, t = mesh_arrays(mesh)
+    cams = as_cameras(cameras, "colours from images", allow_empty=True)
     images = list(images)
     if len(cams) != len(images):
         raise ValueError(f"got {len(cams)} camera(s) and {len(images)} image(s); give one image per camera")
@@ -300,7 +250,7 @@ def colors_from_images(
             raise ValueError(
                 f"image {i} is {w}x{h} (width x height) but camera {i} {_name(cam)}expects {cam.width}x{cam.height}"
             )
-    edges, shared = _edges(t, counts=True)
+    edges, _, shared = unique_edges(t)
     n = _vertex_normals(v, t, bool((shared == 2).all())) if normals is None else as_vectors(normals, len(v), name="normals")
     min_cosine = check_number("min_cosine", min_cosine, low=0.0, high=1.0)
     if min_cosine >= 1:
@@ -312,14 +262,12 @@ def colors_from_images(
 
     scene = None
     if visibility:
-        from o3drbf.synthetic.scans import _scene
-
-        scene = _scene(v, t)
+        scene = raycasting_scene(v, t)
     total = np.zeros((len(v), 3))
     weight = np.zeros(len(v))
     views = np.zeros(len(v), dtype=np.int64)
     for i, (cam, img) in enumerate(zip(cams, images)):
-        img = _image(img, i)  # one float copy at a time
+        img = as_rgb(img, f"image {i}")  # one float copy at a time
         h, w = img.shape[:2]
         pixels, depth = cam.project(v)
         with np.errstate(invalid="ignore"):
@@ -387,10 +335,10 @@ def subdivide_for_images(mesh, cameras: Sequence[Camera], pixels_per_edge: float
 
     pixels_per_edge = check_number("pixels_per_edge", pixels_per_edge, low=0.0, low_open=True)
     max_triangles = check_number("max_triangles", max_triangles, low=1, integer=True)
-    v, t = _mesh(mesh)
-    cams = _cameras(cameras)
+    v, t = mesh_arrays(mesh)
+    cams = as_cameras(cameras, "colours from images", allow_empty=True)
     lengths = [np.empty(0)]
-    edges = _edges(t)
+    edges = unique_edges(t)[0]
     for cam in cams:
         pix, _ = cam.project(v)
         inside = cam.in_image(v)
@@ -503,7 +451,7 @@ def color_mesh(
     """
     import open3d as o3d
 
-    v, t = _mesh(mesh)
+    v, t = mesh_arrays(mesh)
     if hasattr(mesh, "subdivide_midpoint"):
         out = o3d.geometry.TriangleMesh(mesh)
     else:

@@ -26,6 +26,7 @@ from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from o3drbf.mesh.arrays import mesh_arrays, raycasting_scene, unique_edges
 from o3drbf.validation import as_points, check_number
 
 __all__ = [
@@ -47,33 +48,6 @@ _DEGENERATE = 1e-12
 # input checks and shared helpers
 
 
-def _mesh_arrays(mesh: Any, name: str = "mesh") -> tuple[np.ndarray, np.ndarray]:
-    """Vertices ``(V, 3)`` float64 and triangles ``(F, 3)`` int64 of a legacy mesh.
-
-    Raises ``ValueError`` for objects without vertices/triangles, an empty
-    mesh, a mesh without triangles, non-finite vertices or triangle indices
-    outside ``[0, V)``.
-    """
-    if isinstance(mesh, np.ndarray) or not (hasattr(mesh, "vertices") and hasattr(mesh, "triangles")):
-        kind = f"{type(mesh).__module__}.{type(mesh).__qualname__}"
-        raise ValueError(f"{name} must be an open3d.geometry.TriangleMesh (legacy), got {kind}")
-    verts = np.asarray(mesh.vertices, dtype=float).reshape(-1, 3)
-    tris = np.asarray(mesh.triangles, dtype=np.int64).reshape(-1, 3)
-    if verts.shape[0] == 0:
-        raise ValueError(f"{name} is empty (no vertices)")
-    if tris.shape[0] == 0:
-        raise ValueError(f"{name} has {verts.shape[0]} vertices but no triangles")
-    bad = ~np.isfinite(verts).all(axis=1)
-    if bad.any():
-        i = int(np.flatnonzero(bad)[0])
-        raise ValueError(f"{name} has {int(bad.sum())} vertex(es) with NaN or infinite coordinates (first at index {i})")
-    if tris.min() < 0 or tris.max() >= verts.shape[0]:
-        raise ValueError(
-            f"{name} has triangle indices outside [0, {verts.shape[0]}): min {int(tris.min())}, max {int(tris.max())}"
-        )
-    return verts, tris
-
-
 def _sorted_unique(values: np.ndarray) -> np.ndarray:
     """Distinct values of a 1-D integer array, by sorting (faster here than
     ``np.unique``'s hash path in NumPy 2)."""
@@ -92,16 +66,6 @@ def _triangle_frames(verts: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, n
     return cross, 0.5 * np.linalg.norm(cross, axis=1)
 
 
-def _unique_edges(tris: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Undirected edges ``(E, 2)`` (sorted pairs), the edge of each triangle
-    side ``(F, 3)`` (side k is opposite corner k) and each edge's triangle count ``(E,)``."""
-    nv = np.int64(tris.max()) + 1
-    i, j = np.roll(tris, -1, axis=1), np.roll(tris, -2, axis=1)
-    keys = (np.minimum(i, j) * nv + np.maximum(i, j)).ravel()  # integer keys: a 1-D sort, not a row sort
-    keys, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
-    return np.stack([keys // nv, keys % nv], axis=1), inverse.reshape(-1, 3), counts
-
-
 class _Surface:
     """A mesh prepared for distance queries (float32 ``RaycastingScene``,
     coordinates shifted by ``origin``)."""
@@ -112,11 +76,7 @@ class _Surface:
         self.verts, self.tris = verts, tris
         self.origin = 0.5 * (verts.min(axis=0) + verts.max(axis=0))
         self._o3c = o3d.core
-        self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(
-            o3d.core.Tensor(np.ascontiguousarray(verts - self.origin, dtype=np.float32)),
-            o3d.core.Tensor(np.ascontiguousarray(tris, dtype=np.uint32)),
-        )
+        self.scene = raycasting_scene(verts - self.origin, tris)
 
     def _query(self, points: np.ndarray):
         return self._o3c.Tensor(np.ascontiguousarray(points - self.origin, dtype=np.float32))
@@ -152,7 +112,7 @@ class _Shape:
 
     def __init__(self, obj: Any, name: str, n_samples: int, rng: np.random.Generator):
         if _is_mesh(obj):
-            verts, tris = _mesh_arrays(obj, name)
+            verts, tris = mesh_arrays(obj, name)
             self.samples, _ = _sample_surface(verts, tris, n_samples, rng, name)
             self.surface: _Surface | None = _Surface(verts, tris)
             self.tree = None
@@ -209,7 +169,7 @@ def fitness_error(points: Any, mesh: Any) -> dict[str, float]:
     (float32, after centring on the mesh's bounding box).
     """
     pts = as_points(points, name="points")
-    verts, tris = _mesh_arrays(mesh)
+    verts, tris = mesh_arrays(mesh)
     d = _Surface(verts, tris).distance(pts)
     return {"mean": float(d.mean()), "rms": float(np.sqrt(np.mean(d * d))), "max": float(d.max())}
 
@@ -287,13 +247,13 @@ def mean_curvature(mesh: Any) -> np.ndarray:
 
     and ``|H_i| = |K_i| / 2``.  Degenerate (zero-area) triangles are skipped.
     """
-    verts, tris = _mesh_arrays(mesh)
+    verts, tris = mesh_arrays(mesh)
     lap, area = _cotangent_laplacian(verts, tris)
     k = lap @ verts
     h = np.full(verts.shape[0], np.nan)
     good = area > 0
     h[good] = 0.5 * np.linalg.norm(k[good], axis=1) / area[good]
-    edges, _, counts = _unique_edges(tris)
+    edges, _, counts = unique_edges(tris)
     h[edges[counts == 1].ravel()] = np.nan
     return h
 
@@ -451,7 +411,7 @@ def normal_consistency(mesh_a: Any, mesh_b: Any, n_samples: int = 100_000, seed:
     rng = np.random.default_rng(seed)
     sides = []
     for name, mesh in (("mesh_a", mesh_a), ("mesh_b", mesh_b)):
-        verts, tris = _mesh_arrays(mesh, name)
+        verts, tris = mesh_arrays(mesh, name)
         cross, _ = _triangle_frames(verts, tris)
         norm = np.linalg.norm(cross, axis=1, keepdims=True)
         normals = np.divide(cross, norm, out=np.zeros_like(cross), where=norm > 0)
@@ -520,9 +480,9 @@ def mesh_report(mesh: Any, self_intersections: bool = False) -> dict[str, Any]:
     ValueError
         If ``mesh`` is empty, has no triangles or has non-finite vertices.
     """
-    verts, tris = _mesh_arrays(mesh)
+    verts, tris = mesh_arrays(mesh)
     nf = tris.shape[0]
-    edges, tri_edges, counts = _unique_edges(tris)
+    edges, tri_edges, counts = unique_edges(tris)
     ne = edges.shape[0]
     n_used = int(np.count_nonzero(np.bincount(tris.ravel(), minlength=verts.shape[0])))
 

@@ -43,12 +43,16 @@ from typing import Sequence
 
 import numpy as np
 
+from o3drbf.mesh.arrays import mesh_arrays, raycasting_scene
 from o3drbf.progress import progress_bar
-from o3drbf.validation import check_number
+from o3drbf.validation import as_rgb, check_number
 
 __all__ = [
     "CarveResult",
+    "read_image",
     "read_images",
+    "find_image",
+    "check_bounds",
     "silhouettes",
     "seen_bounds",
     "carve",
@@ -138,24 +142,6 @@ class CarveResult:
 # -- images -------------------------------------------------------------------
 
 
-def _as_rgb(image, name: str) -> np.ndarray:
-    """An image array as float32 RGB in [0, 1]."""
-    a = np.asarray(image)
-    if a.ndim == 2:
-        a = np.repeat(a[:, :, None], 3, axis=2)
-    if a.ndim != 3 or a.shape[2] not in (3, 4) or a.shape[0] < 1 or a.shape[1] < 1:
-        raise ValueError(f"{name}: expected an (H, W, 3) colour or (H, W) grey image, got shape {a.shape}")
-    a = a[:, :, :3]
-    if np.issubdtype(a.dtype, np.integer):
-        return a.astype(np.float32) / float(np.iinfo(a.dtype).max)
-    a = a.astype(np.float32)
-    if not np.isfinite(a).all():
-        raise ValueError(f"{name}: NaN or infinite pixel values")
-    if a.min() < 0 or a.max() > 1:
-        raise ValueError(f"{name}: float pixel values must lie in [0, 1], got [{a.min():.3g}, {a.max():.3g}]")
-    return a
-
-
 def read_image(path: str | os.PathLike) -> np.ndarray:
     """Read one image file as float32 RGB in [0, 1], ``(H, W, 3)``."""
     import skimage.io
@@ -169,10 +155,13 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
             data = skimage.io.imread(str(path))
     except Exception as exc:  # noqa: BLE001 - any decoder failure is a bad input file
         raise ValueError(f"cannot read image {path}: {exc}") from None
-    return _as_rgb(data, str(path))
+    return as_rgb(data, str(path), np.float32)
 
 
-def _find_image(folder: Path, name: str) -> Path | None:
+def find_image(folder: str | os.PathLike, name: str) -> Path | None:
+    """The image file a calibration names: ``folder/name``, ``folder/basename``,
+    ``folder/images/name`` or ``folder/images/basename``, the first that exists (else None)."""
+    folder = Path(folder)
     for cand in (folder / name, folder / Path(name).name, folder / "images" / name, folder / "images" / Path(name).name):
         if cand.is_file():
             return cand
@@ -219,7 +208,7 @@ def read_images(folder: str | os.PathLike, cameras) -> tuple[list[np.ndarray], l
             raise ValueError(f"camera {i} ({cam!r}) is not a pinhole camera; photographs need K, R, t")
         if not cam.name:
             raise ValueError(f"camera {i} has no image name; the calibration must name each image")
-        p = _find_image(folder, cam.name)
+        p = find_image(folder, cam.name)
         if p is None:
             missing.append(cam.name)
         paths.append(p)
@@ -240,7 +229,7 @@ def read_images(folder: str | os.PathLike, cameras) -> tuple[list[np.ndarray], l
 
 
 def _check_images(images, cameras) -> list[np.ndarray]:
-    imgs = [_as_rgb(im, f"image {i}") for i, im in enumerate(images)]
+    imgs = [as_rgb(im, f"image {i}", np.float32) for i, im in enumerate(images)]
     cams = list(cameras)
     if len(imgs) != len(cams):
         raise ValueError(f"{len(imgs)} images for {len(cams)} cameras (count mismatch); give one image per camera")
@@ -299,7 +288,7 @@ def silhouettes(
     min_area = check_number("min_area", min_area, low=0, integer=True)
     masks = []
     for i, im in enumerate(images):
-        a = _as_rgb(im, f"image {i}")
+        a = as_rgb(im, f"image {i}", np.float32)
         m = np.abs(a - bg.astype(np.float32)).max(axis=2) > threshold
         if min_area > 0:
             m = _drop_small(m, min_area, ndimage)
@@ -341,13 +330,9 @@ def _check_masks(masks, cameras) -> list[np.ndarray]:
 
 def _project(cam, points: np.ndarray):
     """Integer pixels (N, 2), depth (N,), and whether each lies in the image."""
-    xc = np.einsum("ij,kj->ik", points, cam.R) + cam.t  # einsum: no BLAS threads for a tall x 3x3
-    z = xc[:, 2]
+    pixels, z = cam.project(points)
     front = z > 1e-12
-    zs = np.where(front, z, 1.0)
-    K = cam.K
-    u = (K[0, 0] * xc[:, 0] + K[0, 1] * xc[:, 1]) / zs + K[0, 2]
-    v = K[1, 1] * xc[:, 1] / zs + K[1, 2]
+    u, v = np.where(front, pixels[:, 0], 0.0), np.where(front, pixels[:, 1], 0.0)  # behind: NaN -> 0 (not inside)
     inside = front & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
     ui = np.clip(u, 0, cam.width - 1).astype(np.int64)
     vi = np.clip(v, 0, cam.height - 1).astype(np.int64)
@@ -371,7 +356,8 @@ def _hull(masks, cameras, origin, voxel, shape, progress=False, desc="visual hul
     return alive.reshape(shape)
 
 
-def _check_bounds(bounds) -> np.ndarray:
+def check_bounds(bounds) -> np.ndarray:
+    """A box as ``(2, 3)`` float64 ``[[xmin, ymin, zmin], [xmax, ymax, zmax]]`` (six numbers also accepted); ValueError unless finite with max > min."""
     b = np.asarray(bounds, dtype=float)
     if b.shape == (6,):
         b = b.reshape(2, 3)
@@ -480,7 +466,7 @@ def box_masks(bounds, cameras) -> list[np.ndarray]:
     from scipy.spatial import ConvexHull
     from skimage.draw import polygon
 
-    b = _check_bounds(bounds)
+    b = check_bounds(bounds)
     corners = np.array([[b[i, 0], b[j, 1], b[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
     out = []
     for cam in cameras:
@@ -571,8 +557,6 @@ def visible_cameras(
     """
     import open3d as o3d
 
-    from o3drbf.synthetic.scans import _scene
-
     cams = list(cameras)
     idx = np.asarray(indices, dtype=np.int64)
     targets = _grid_centres(np.asarray(origin, float), voxel_size, idx) + 0.5 * voxel_size * surface_offsets(occupancy, idx)
@@ -580,7 +564,7 @@ def visible_cameras(
     vis = np.zeros((n, len(cams)), dtype=bool)
     pix = np.zeros((len(cams), n, 2), dtype=np.int64)
     v_all, t_all = voxel_faces(occupancy, np.asarray(origin, float), voxel_size)
-    scene = _scene(v_all, t_all) if len(t_all) else None
+    scene = raycasting_scene(v_all, t_all) if len(t_all) else None
     for c, cam in enumerate(cams):
         u, v, _, inside = _project(cam, targets)
         pix[c, :, 0], pix[c, :, 1] = u, v
@@ -725,7 +709,7 @@ def carve(
 
     t0 = time.perf_counter()
     bounds_given = bounds is not None
-    box = _check_bounds(bounds) if bounds_given else seen_bounds(cams, masks)
+    box = check_bounds(bounds) if bounds_given else seen_bounds(cams, masks)
     origin, voxel, shape = _grid(box, resolution)
     stats["bounds"] = box.tolist()
     stats["bounds_from"] = "given" if bounds_given else "silhouettes"
@@ -798,30 +782,15 @@ def carve(
 # -- checking a mesh against the silhouettes ------------------------------------
 
 
-def _camera_rays(cam, stride: int = 1) -> np.ndarray:
-    """(H', W', 6) float32 rays through pixel centres (origin, unit direction)."""
-    vs = np.arange(0, cam.height, stride) + 0.5
-    us = np.arange(0, cam.width, stride) + 0.5
-    uu, vv = np.meshgrid(us, vs)
-    Kinv = np.linalg.inv(cam.K)
-    pix = np.stack([uu, vv, np.ones_like(uu)], axis=-1)
-    d = pix @ Kinv.T @ cam.R  # camera -> world: R^T x
-    d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    o = np.broadcast_to(cam.center, d.shape)
-    return np.concatenate([o, d], axis=-1).astype(np.float32)
-
-
 def mesh_masks(mesh, cameras, stride: int = 1) -> list[np.ndarray]:
     """Where the mesh covers each camera's image (ray casting, one ray per pixel centre)."""
     import open3d as o3d
 
-    from o3drbf.synthetic.scans import _mesh_arrays, _scene
-
-    v, t = _mesh_arrays(mesh)
-    scene = _scene(v, t)
+    v, t = mesh_arrays(mesh)
+    scene = raycasting_scene(v, t)
     out = []
     for cam in cameras:
-        rays = _camera_rays(cam, stride)
+        rays = cam.pixel_rays(stride).astype(np.float32)
         hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
         out.append(np.isfinite(hit))
     return out

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from o3drbf.photo import carve as carving
+from o3drbf.validation import as_rgb
 
 __all__ = ["add_photos_arguments", "main_photos", "run_photos", "PhotosResult", "readme_bounds", "picture", "PHOTO_DEFAULTS"]
 
@@ -115,7 +116,7 @@ def _load(images_dir, calibration):
     cams = load_cameras(cal)
     if cams.format == "bundler" and cams[0].width is None:
         # Bundler's principal point is the image centre: the loader needs the size.
-        first = carving._find_image(folder, cams[0].name)
+        first = carving.find_image(folder, cams[0].name)
         if first is not None:
             h, w = carving.read_image(first).shape[:2]
             cams = load_cameras(cal, image_size=(w, h))
@@ -201,7 +202,7 @@ def run_photos(
         readme = readme_bounds(images_dir) if images_dir is not None else None
     else:
         cams = list(cameras)
-        images = [carving._as_rgb(im, f"image {i}") for i, im in enumerate(images)]
+        images = [as_rgb(im, f"image {i}", np.float32) for i, im in enumerate(images)]
         readme = None
     stats["read_seconds"] = time.perf_counter() - t0
 
@@ -211,7 +212,7 @@ def run_photos(
         box = readme if bounds == "auto" else None
         stats["bounds_source"] = "README" if box is not None else "silhouettes"
     else:
-        box = carving._check_bounds(bounds)
+        box = carving.check_bounds(bounds)
         stats["bounds_source"] = "given"
 
     t0 = time.perf_counter()
@@ -301,9 +302,9 @@ def render_model(mesh, camera, lighting: bool = False) -> np.ndarray:
     -------
     (H, W, 3) uint8 array
     """
-    from o3drbf.pictures import _headless, to_pyvista
+    from o3drbf.pictures import headless, to_pyvista
 
-    _headless()
+    headless()
     import pyvista as pv
 
     W, H = camera.width, camera.height
@@ -355,7 +356,7 @@ def picture(mesh, camera, photo, path, lighting: bool = False) -> Path:
     if not (path.parent if str(path.parent) else Path(".")).is_dir():
         raise FileNotFoundError(f"output folder does not exist: {path.parent}")
     render = render_model(mesh, camera, lighting=lighting)
-    photo8 = (np.clip(carving._as_rgb(photo, "photo"), 0, 1) * 255).round().astype(np.uint8)
+    photo8 = (np.clip(as_rgb(photo, "photo", np.float32), 0, 1) * 255).round().astype(np.uint8)
     gap = np.full((photo8.shape[0], 8, 3), 255, dtype=np.uint8)
     panel = np.concatenate([photo8, gap, render], axis=1)
     with atomic_path(path) as tmp:

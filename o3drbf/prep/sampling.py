@@ -12,11 +12,31 @@ from o3drbf.validation import as_points, check_number
 __all__ = ["poisson_disc", "mean_spacing", "fibonacci_sphere"]
 
 
-def mean_spacing(points) -> float:
+def mean_spacing(points, sample: int | None = None, tree: cKDTree | None = None, seed: int = 0) -> float:
     """Mean distance from each point to its nearest other point (the paper's
-    "average minimum distance between surface samples")."""
+    "average minimum distance between surface samples").
+
+    Parameters
+    ----------
+    points : (N, 3) array_like, N >= 2
+    sample : int, optional
+        Estimate from this many randomly chosen query points (all when
+        ``None`` or ``N <= sample``): the mean is then exact.
+    tree : scipy.spatial.cKDTree, optional
+        A KD-tree of these same points, to reuse.
+    seed : int
+        For the random choice of query points.
+
+    Returns
+    -------
+    float
+    """
     pts = as_points(points, min_count=2)
-    d, _ = cKDTree(pts).query(pts, k=2)
+    tree = cKDTree(pts) if tree is None else tree
+    q = pts
+    if sample is not None and len(pts) > check_number("sample", sample, low=1, integer=True):
+        q = pts[np.random.default_rng(seed).choice(len(pts), sample, replace=False)]
+    d, _ = tree.query(q, k=2, workers=-1)
     return float(d[:, 1].mean())
 
 

@@ -44,8 +44,8 @@ def _params(kernel):
         (A, B), a, b = kernel.coefficients, kernel.decay_rates[0].real, kernel.decay_rates[1].real
         if abs(a - b) < 1e-2 * (a + b):
             return None  # near-confluent: A, B large; the NumPy divided difference handles it
-        d1, d3, d4, d5 = kernel._d1, kernel._d3, kernel._d4, kernel._d5
-        return _MULTIORDER, np.array([A.real, B.real, a, b, kernel._c, d1, d3, d4, d5], dtype=float)
+        d1, d3, d4, d5 = kernel.series_coefficients()
+        return _MULTIORDER, np.array([A.real, B.real, a, b, kernel.scale, d1, d3, d4, d5], dtype=float)
     if name == "gaussian":
         return _GAUSSIAN, np.array([kernel.sigma], dtype=float)
     if name == "thinplate":
@@ -203,7 +203,7 @@ class KernelTable:
         a, b = kernel.decay_rates
         abs_a, abs_b = abs(a), abs(b)
         re_a, re_b = a.real, b.real
-        self.c = float(kernel._c)
+        self.c = float(kernel.scale)
         self.r_taylor = _TAYLOR_AR / abs_a
         r2 = max(8.0, 40.0 / re_b)
         r1 = min(40.0 / re_a, r2)

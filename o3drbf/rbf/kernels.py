@@ -190,6 +190,24 @@ class MultiOrder(Kernel):
         self._d5 = ab * ab * (a2b2 + ab) / s
 
     @property
+    def scale(self) -> float:
+        """``4 pi delta^2``, the constant that divides the kernel's divided-difference form."""
+        return self._c
+
+    def series_coefficients(self) -> tuple[float, float, float, float]:
+        """Taylor coefficients ``(D1, D3, D4, D5)`` of the kernel near ``r = 0``.
+
+        ``D_n = A a^n + B b^n`` (always real), so that for small ``r``
+        ``phi(r) ~ (-D1 - D3 r^2 / 6 + D4 r^3 / 24 - D5 r^4 / 120) / scale``.
+        Compiled kernels (:mod:`o3drbf.rbf.compiled`) use the same series.
+
+        Returns
+        -------
+        tuple of 4 floats
+        """
+        return self._d1, self._d3, self._d4, self._d5
+
+    @property
     def regime(self) -> str:
         """``"real"``, ``"confluent"`` or ``"complex"`` (sign of 1 - 4 tau^2 delta^2)."""
         return self._regime

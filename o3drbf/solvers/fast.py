@@ -115,7 +115,7 @@ from o3drbf.solvers.base import ConvergenceWarning, Solution, available_memory
 from o3drbf.rbf.sums import kernel_matrix, kernel_sum, polynomial_basis
 
 __all__ = ["FastSum", "TwoLevel", "solve", "make_evaluator", "fast_memory", "default_workers", "DEFAULT_EPS",
-           "GridSum", "fast_operator"]
+           "GridSum", "fast_operator", "grid_bytes"]
 
 #: Default relative tolerance of fast sums (evaluation).
 DEFAULT_EPS = 1e-6
@@ -719,6 +719,12 @@ def _fft_workers() -> int:
 
 #: Bytes allowed for one grid backend's FFT arrays (kernel transform + work arrays).
 GRID_BUDGET = 2 * 2**30
+
+
+def grid_bytes(lo, hi, h: float, half: int) -> int:
+    """Bytes the grid backend's FFT arrays take over the box ``[lo, hi]`` ((3,) each) at spacing ``h``
+    with a spreading half-width of ``half`` cells (what :data:`GRID_BUDGET` is compared with)."""
+    return _Mesh.nbytes(lo, hi, h, half)
 
 
 class _Mesh:

@@ -19,9 +19,9 @@ from typing import Sequence
 
 import numpy as np
 
-from o3drbf.cameras.model import Camera
+from o3drbf.cameras.model import Camera, as_cameras
 from o3drbf.io.files import atomic_path
-from o3drbf.synthetic.scans import _mesh_arrays, _scene
+from o3drbf.mesh.arrays import mesh_arrays, raycasting_scene
 
 __all__ = ["View", "render_views", "pixel_rays", "save_images"]
 
@@ -50,23 +50,6 @@ class View:
     camera: Camera
 
 
-def _pinhole(cameras) -> list[Camera]:
-    if isinstance(cameras, Camera):
-        cameras = [cameras]
-    cams = list(getattr(cameras, "cameras", cameras))
-    if not cams:
-        raise ValueError("cameras is empty; give at least one pinhole Camera with width and height")
-    for i, cam in enumerate(cams):
-        label = f"camera {i}" + (f" ({cam.name})" if getattr(cam, "name", "") else "")
-        if not isinstance(cam, Camera):
-            raise ValueError(f"{label} is a {type(cam).__name__}, not an o3drbf.cameras.model.Camera")
-        if cam.kind != "pinhole":
-            raise ValueError(f"{label} is a {cam.kind!r} sensor; images need pinhole cameras")
-        if cam.width is None or cam.height is None:
-            raise ValueError(f"{label} has no image size (width/height); images need one")
-    return cams
-
-
 def pixel_rays(camera: Camera) -> np.ndarray:
     """Rays through every pixel centre of a pinhole camera.
 
@@ -83,11 +66,7 @@ def pixel_rays(camera: Camera) -> np.ndarray:
         unit length: its camera-frame z component is 1, so the ray parameter of
         a hit is the depth (camera z) of the hit.
     """
-    cam = _pinhole([camera])[0]
-    u, v = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
-    pix = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], axis=1)
-    d = np.linalg.solve(cam.K, pix.T).T @ cam.R  # rows: R^T K^-1 [u v 1]
-    return np.hstack([np.broadcast_to(cam.center, d.shape), d])
+    return as_cameras(camera, "images", sized=True)[0].pixel_rays().reshape(-1, 6)
 
 
 def _vertex_colors(mesh, n: int, vertex_colors) -> np.ndarray:
@@ -139,13 +118,13 @@ def render_views(
     """
     import open3d as o3d
 
-    v, t = _mesh_arrays(mesh)
+    v, t = mesh_arrays(mesh)
     colors = _vertex_colors(mesh, len(v), vertex_colors)
     bg = np.asarray(background, dtype=float).reshape(-1)
     if bg.shape != (3,) or not np.isfinite(bg).all():
         raise ValueError(f"background must be an RGB triple, got {np.asarray(background).tolist()}")
-    cams = _pinhole(cameras)
-    scene = _scene(v, t)
+    cams = as_cameras(cameras, "images", sized=True)
+    scene = raycasting_scene(v, t)
     views = []
     for cam in cams:
         rays = pixel_rays(cam)

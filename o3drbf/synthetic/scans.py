@@ -21,47 +21,9 @@ import numpy as np
 
 from o3drbf.validation import check_number
 from o3drbf.cameras.model import Camera, save_cameras_json
+from o3drbf.mesh.arrays import mesh_arrays, raycasting_scene
 
 __all__ = ["range_scans", "camera_ring", "voxel_shell", "VoxelShell", "write_scan_json"]
-
-
-def _mesh_arrays(mesh) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices (V, 3) and triangles (T, 3) of a mesh given as Open3D mesh, path or pair of arrays."""
-    import open3d as o3d
-
-    if isinstance(mesh, (str, os.PathLike)):
-        path = Path(mesh)
-        if not path.is_file():
-            raise FileNotFoundError(f"mesh file not found: {path}")
-        mesh = o3d.io.read_triangle_mesh(str(path))
-    if hasattr(mesh, "vertex") and hasattr(mesh, "triangle"):  # tensor mesh
-        v, t = mesh.vertex.positions.numpy(), mesh.triangle.indices.numpy()
-    elif hasattr(mesh, "vertices") and hasattr(mesh, "triangles"):
-        v, t = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
-    elif isinstance(mesh, tuple) and len(mesh) == 2:
-        v, t = mesh
-    else:
-        raise ValueError(f"mesh must be an Open3D TriangleMesh, a mesh file or (vertices, triangles), got {type(mesh).__name__}")
-    v = np.asarray(v, dtype=float)
-    t = np.asarray(t, dtype=np.int64)
-    if v.ndim != 2 or v.shape[1] != 3 or t.ndim != 2 or t.shape[1] != 3 or len(t) == 0:
-        raise ValueError(f"mesh needs (V, 3) vertices and at least one (T, 3) triangle, got {v.shape} and {t.shape}")
-    if not np.isfinite(v).all():
-        raise ValueError("mesh has NaN or infinite vertex coordinates")
-    if t.min() < 0 or t.max() >= len(v):
-        raise ValueError("mesh triangles refer to missing vertices")
-    return v, t
-
-
-def _scene(vertices, triangles):
-    import open3d as o3d
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(
-        o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
-        o3d.core.Tensor(np.ascontiguousarray(triangles, dtype=np.uint32)),
-    )
-    return scene
 
 
 def _basis(up) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -178,7 +140,7 @@ def range_scans(
         The camera that produced each point.
     cameras : list of Camera
     """
-    v, t = _mesh_arrays(mesh)
+    v, t = mesh_arrays(mesh)
     noise = check_number("noise", noise, low=0.0)
     outliers = check_number("outliers", outliers, low=0.0)
     if outliers >= 1:
@@ -187,17 +149,15 @@ def range_scans(
     lo, hi = v.min(axis=0), v.max(axis=0)
     center = (lo + hi) / 2
     cams = camera_ring(center, 0.5 * float(np.linalg.norm(hi - lo)), n_views, elevation, distance, width, height, fov, up, azimuth)
-    scene = _scene(v, t)
+    scene = raycasting_scene(v, t)
     rng = np.random.default_rng(seed)
     import open3d as o3d
 
     parts, owner, hits = [], [], []
     for k, cam in enumerate(cams):
-        u, w = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
-        pix = np.stack([u.ravel(), w.ravel(), np.ones(u.size)], axis=1)
-        d = np.linalg.solve(cam.K, pix.T).T @ cam.R  # R^T K^-1 [u v 1]
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        rays = np.hstack([np.broadcast_to(cam.center, d.shape), d]).astype(np.float32)
+        rays = cam.pixel_rays(unit=True).reshape(-1, 6)
+        d = rays[:, 3:]
+        rays = rays.astype(np.float32)
         hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(float)
         ok = np.isfinite(hit)
         depth = hit[ok]
@@ -271,8 +231,8 @@ def _sdf_function(shape) -> tuple[Callable[[np.ndarray], np.ndarray], np.ndarray
         return shape, None
     import open3d as o3d
 
-    v, t = _mesh_arrays(shape)
-    scene = _scene(v, t)
+    v, t = mesh_arrays(shape)
+    scene = raycasting_scene(v, t)
 
     def sdf(x):
         q = o3d.core.Tensor(np.asarray(x, dtype=np.float32).reshape(-1, 3))

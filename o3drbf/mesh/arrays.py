@@ -1,0 +1,133 @@
+"""Triangle meshes as arrays: the one place that turns a mesh into ``(V, F)``.
+
+:func:`mesh_arrays` accepts every mesh form the toolkit takes (Open3D legacy
+or tensor ``TriangleMesh``, a mesh file, or a ``(vertices, triangles)`` pair)
+and checks it; :func:`raycasting_scene` builds the Open3D ray-casting scene
+that visibility, rendering, carving and distance queries share;
+:func:`unique_edges` is the undirected edge table of a triangle list.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["mesh_arrays", "raycasting_scene", "unique_edges"]
+
+
+def mesh_arrays(mesh: Any, name: str = "mesh") -> tuple[np.ndarray, np.ndarray]:
+    """Vertices and triangles of a mesh, checked.
+
+    Parameters
+    ----------
+    mesh : open3d.geometry.TriangleMesh, open3d.t.geometry.TriangleMesh, path or (vertices, triangles)
+        A mesh file is read with Open3D.
+    name : str
+        What to call the mesh in error messages.
+
+    Returns
+    -------
+    vertices : (V, 3) float64 array
+    triangles : (F, 3) int64 array
+
+    Raises
+    ------
+    FileNotFoundError
+        A path that is not a file.
+    ValueError
+        Anything that is not a mesh, an empty mesh, a mesh without
+        triangles, non-finite vertices or triangle indices outside ``[0, V)``.
+    """
+    if isinstance(mesh, (str, os.PathLike)):
+        import open3d as o3d
+
+        path = Path(mesh)
+        if not path.is_file():
+            raise FileNotFoundError(f"{name} file not found: {path}")
+        mesh = o3d.io.read_triangle_mesh(str(path))
+    if hasattr(mesh, "vertex") and hasattr(mesh, "triangle"):  # tensor mesh
+        verts = mesh.vertex.positions.numpy() if "positions" in mesh.vertex else np.zeros((0, 3))
+        tris = mesh.triangle.indices.numpy() if "indices" in mesh.triangle else np.zeros((0, 3), np.int64)
+    elif hasattr(mesh, "vertices") and hasattr(mesh, "triangles") and not isinstance(mesh, np.ndarray):
+        verts, tris = mesh.vertices, mesh.triangles
+    elif isinstance(mesh, tuple) and len(mesh) == 2:
+        verts, tris = mesh
+    else:
+        kind = f"{type(mesh).__module__}.{type(mesh).__qualname__}"
+        raise ValueError(
+            f"{name} must be an open3d.geometry.TriangleMesh (legacy or tensor), a mesh file or a "
+            f"(vertices, triangles) pair, got {kind}"
+        )
+    verts = np.asarray(verts, dtype=float)
+    tris = np.asarray(tris)
+    if verts.size == 0:
+        raise ValueError(f"{name} is empty (no vertices)")
+    if verts.ndim != 2 or verts.shape[1] != 3:
+        raise ValueError(f"{name} vertices must have shape (V, 3), got {verts.shape}")
+    if tris.size == 0:
+        raise ValueError(f"{name} has {verts.shape[0]} vertices but no triangles")
+    if tris.ndim != 2 or tris.shape[1] != 3 or not np.issubdtype(tris.dtype, np.integer):
+        raise ValueError(f"{name} triangles must be integers of shape (F, 3), got {tris.dtype} {tris.shape}")
+    tris = tris.astype(np.int64)
+    bad = ~np.isfinite(verts).all(axis=1)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"{name} has {int(bad.sum())} vertex(es) with NaN or infinite coordinates (first at index {i})")
+    if tris.min() < 0 or tris.max() >= verts.shape[0]:
+        raise ValueError(
+            f"{name} has triangle indices outside [0, {verts.shape[0]}): min {int(tris.min())}, max {int(tris.max())}"
+        )
+    return verts, tris
+
+
+def raycasting_scene(vertices: np.ndarray, triangles: np.ndarray):
+    """An Open3D ray-casting scene holding one triangle mesh (single precision).
+
+    Parameters
+    ----------
+    vertices : (V, 3) array_like
+    triangles : (F, 3) int array_like
+        May be empty: the scene then holds nothing and every ray misses.
+
+    Returns
+    -------
+    open3d.t.geometry.RaycastingScene
+    """
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    if len(triangles):
+        scene.add_triangles(
+            o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32).reshape(-1, 3)),
+            o3d.core.Tensor(np.ascontiguousarray(triangles, dtype=np.uint32).reshape(-1, 3)),
+        )
+    return scene
+
+
+def unique_edges(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Undirected edges of a triangle list.
+
+    Parameters
+    ----------
+    triangles : (F, 3) int array_like
+
+    Returns
+    -------
+    edges : (E, 2) int64 array
+        Sorted vertex pairs ``(i < j)``, in increasing order of ``(i, j)``.
+    side_edge : (F, 3) int64 array
+        The edge of each triangle side; side ``k`` is opposite corner ``k``.
+    counts : (E,) int64 array
+        How many triangle sides use each edge (2 everywhere on a closed manifold).
+    """
+    tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    if not len(tris):
+        return np.zeros((0, 2), np.int64), np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
+    nv = np.int64(tris.max()) + 1
+    i, j = np.roll(tris, -1, axis=1), np.roll(tris, -2, axis=1)
+    keys = (np.minimum(i, j) * nv + np.maximum(i, j)).ravel()  # integer keys: a 1-D sort, not a row sort
+    keys, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    return np.stack([keys // nv, keys % nv], axis=1), inverse.reshape(-1, 3), counts

@@ -1,0 +1,94 @@
+"""o3drbf.mesh.arrays: one reading of every mesh form, the shared ray-casting
+scene and the edge table, against hand-counted meshes."""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from o3drbf.mesh.arrays import mesh_arrays, raycasting_scene, unique_edges
+
+TETRA_V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+TETRA_F = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+
+
+def _box():
+    return o3d.geometry.TriangleMesh.create_box(1.0, 1.0, 1.0)  # [0, 1]^3, 8 vertices, 12 triangles
+
+
+def test_every_mesh_form_gives_the_same_arrays(tmp_path):
+    box = _box()
+    v, f = np.asarray(box.vertices), np.asarray(box.triangles)
+    path = tmp_path / "box.ply"
+    assert o3d.io.write_triangle_mesh(str(path), box)
+    forms = {
+        "legacy": box,
+        "tensor": o3d.t.geometry.TriangleMesh.from_legacy(box),
+        "pair": (v.tolist(), f.tolist()),
+        "path": path,
+        "str path": str(path),
+    }
+    for name, form in forms.items():
+        verts, tris = mesh_arrays(form)
+        assert verts.dtype == np.float64 and tris.dtype == np.int64, name
+        np.testing.assert_allclose(verts, v, atol=1e-6, err_msg=name)  # the file stores float32
+        np.testing.assert_array_equal(tris, f, err_msg=name)
+
+
+@pytest.mark.parametrize(
+    "mesh,message",
+    [
+        (np.zeros((4, 3)), "must be an open3d.geometry.TriangleMesh"),
+        ((np.zeros((0, 3)), np.zeros((0, 3), int)), r"empty \(no vertices\)"),
+        ((TETRA_V, np.zeros((0, 3), int)), "4 vertices but no triangles"),
+        ((TETRA_V[:, :2], TETRA_F), r"vertices must have shape \(V, 3\)"),
+        ((TETRA_V, TETRA_F.astype(float)), "triangles must be integers"),
+        ((np.where(np.eye(4, 3, dtype=bool), np.nan, TETRA_V), TETRA_F), "NaN or infinite coordinates"),
+        ((TETRA_V, TETRA_F + 1), r"triangle indices outside \[0, 4\)"),
+    ],
+    ids=["not a mesh", "empty", "no triangles", "2-D", "float triangles", "nan", "bad index"],
+)
+def test_bad_meshes_raise_one_line_naming_the_problem(mesh, message):
+    with pytest.raises(ValueError, match=message):
+        mesh_arrays(mesh)
+    with pytest.raises(ValueError, match="^truth "):
+        mesh_arrays(mesh, "truth")
+
+
+def test_missing_file():
+    with pytest.raises(FileNotFoundError, match="mesh file not found"):
+        mesh_arrays("/nonexistent/mesh.ply")
+
+
+def test_scene_hits_the_box_where_it_is():
+    v, f = mesh_arrays(_box())
+    scene = raycasting_scene(v, f)
+    rays = o3d.core.Tensor(np.array([[0.5, 0.5, -1.0, 0, 0, 1], [0.25, 0.75, 3.0, 0, 0, -1], [2.0, 2.0, -1, 0, 0, 1]], np.float32))
+    hit = scene.cast_rays(rays)["t_hit"].numpy()
+    np.testing.assert_allclose(hit[:2], [1.0, 2.0], atol=1e-6)
+    assert np.isinf(hit[2])
+    q = o3d.core.Tensor(np.array([[0.5, 0.5, 3.0]], np.float32))
+    assert scene.compute_distance(q).numpy()[0] == pytest.approx(2.0, abs=1e-6)
+
+
+def test_empty_scene_misses_everything():
+    scene = raycasting_scene(np.zeros((0, 3)), np.zeros((0, 3), int))
+    hit = scene.cast_rays(o3d.core.Tensor(np.array([[0, 0, -1, 0, 0, 1]], np.float32)))["t_hit"].numpy()
+    assert np.isinf(hit).all()
+
+
+def test_edges_of_a_tetrahedron_and_a_box():
+    edges, side, counts = unique_edges(TETRA_F)
+    assert edges.tolist() == [[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]]  # all 6 pairs, sorted
+    assert counts.tolist() == [2] * 6
+    for t in range(len(TETRA_F)):
+        for k in range(3):  # side k is opposite corner k
+            pair = sorted([TETRA_F[t, (k + 1) % 3], TETRA_F[t, (k + 2) % 3]])
+            assert edges[side[t, k]].tolist() == pair
+    v, f = mesh_arrays(_box())
+    edges, _, counts = unique_edges(f)
+    assert len(edges) == 18 and (counts == 2).all()  # 12 cube edges + 6 face diagonals; V - E + F = 2
+    assert len(v) - len(edges) + len(f) == 2
+    open_edges, _, open_counts = unique_edges(f[:-1])  # one triangle off: its 3 edges are now boundary
+    assert len(open_edges) == 18 and (open_counts == 1).sum() == 3
