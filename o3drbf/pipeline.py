@@ -381,9 +381,28 @@ def estimate_normals(points, k: int = 30, seed: int = 0) -> np.ndarray:
         pcd.orient_normals_towards_camera_location(pts.mean(axis=0))
         return -np.asarray(pcd.normals)
     n = np.asarray(pcd.normals).copy()
-    if np.einsum("ij,ij->i", n, pts - pts.mean(axis=0)).mean() < 0:
-        n = -n
+    # The tangent-plane orientation is consistent within each connected piece
+    # of the neighbour graph, not across pieces: flip each piece on its own so
+    # that its normals point away from its own centroid (separate objects,
+    # e.g. stacked tori, are each oriented outward).
+    labels = _neighbour_components(pts, k=min(k, 10))
+    for c in np.unique(labels):
+        sel = labels == c
+        if np.einsum("ij,ij->i", n[sel], pts[sel] - pts[sel].mean(axis=0)).mean() < 0:
+            n[sel] = -n[sel]
     return n
+
+
+def _neighbour_components(points: np.ndarray, k: int) -> np.ndarray:
+    """Connected components of the symmetric k-nearest-neighbour graph (labels)."""
+    from scipy import sparse
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    _, nb = cKDTree(points).query(points, k=k + 1)
+    rows = np.repeat(np.arange(len(points)), k)
+    graph = sparse.coo_matrix((np.ones(rows.size), (rows, nb[:, 1:].ravel())), shape=(len(points), len(points)))
+    return connected_components(graph, directed=False)[1]
 
 
 def ensure_normals(data: PointSet, *, seed: int = 0) -> tuple[PointSet, bool]:

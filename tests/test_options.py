@@ -150,3 +150,14 @@ def test_lambda_exterior_is_relative_to_phi0_of_the_kernel_used():
         ext = r.constraints.kind != 0
         np.testing.assert_allclose(r.constraints.smoothing[ext], DEFAULTS["lambda_exterior"] * phi0)
         assert r.report.parameters["lambda_exterior"] == pytest.approx(DEFAULTS["lambda_exterior"] * phi0)
+
+
+def test_estimated_normals_are_oriented_outward_per_separate_object():
+    # Two tori far apart, each flipped inward: orientation is settled per
+    # connected piece, so both come back outward.
+    a, na = Torus(0.6, 0.25).sample(3000, seed=1)
+    b = a + [3.0, 0.0, 0.0]
+    normals = o3drbf.estimate_normals(np.vstack([a, b]))
+    truth = np.vstack([na, na])
+    agree = np.einsum("ij,ij->i", normals, truth)
+    assert (agree[:3000] > 0).mean() > 0.98 and (agree[3000:] > 0).mean() > 0.98
