@@ -21,3 +21,18 @@ def test_readme_python_examples_run():
     assert len(code) >= 3
     for i, block in enumerate(code):
         exec(compile(block, f"README.md python block {i}", "exec"), {})
+
+
+def test_readme_option_table_matches_the_parser():
+    from o3drbf.cli.commands import build_parser
+
+    text = (REPO / "README.md").read_text()
+    start = text.index("| option | meaning | default |")
+    table = text[start:text.index("\n\n", start)]
+    documented = set(re.findall(r"`(--?[a-z][a-z-]*)", table))
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.dest == "command").choices["reconstruct"]
+    options = {s for a in sub._actions for s in a.option_strings if s not in ("-h", "--help", "-o", "--output")}
+    options = {o for o in options if o not in ("--quiet", "--verbose")}  # shown as -q, -v
+    assert documented == options, (documented - options, options - documented)
+    assert all(a.help for a in sub._actions if a.option_strings), "every option has help text"
