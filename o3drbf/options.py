@@ -21,6 +21,8 @@ __all__ = [
     "OUTLIER_METHODS",
     "PAPER_VALUES",
     "VIEWER_OVERRIDES",
+    "CARVE_DEFAULTS",
+    "PHOTO_DEFAULTS",
     "SOLVER_METHODS",
     "Options",
     "OutlierOptions",
@@ -70,6 +72,21 @@ DEFAULTS: dict = {
 #: The viewer's starting values where an interactive refit needs a lighter
 #: problem than a final reconstruction (everything else: :data:`DEFAULTS`).
 VIEWER_OVERRIDES = {"resolution": 64, "surface_count": 1500}
+
+#: Space carving from photographs (:mod:`o3drbf.photo.carve`).
+CARVE_DEFAULTS = {
+    "resolution": 128,
+    "background": (0.0, 0.0, 0.0),
+    "threshold": 0.15,
+    "min_area": 64,
+    "photo_consistency": 0.12,
+    "sweeps": 3,
+    "min_views": 2,
+}
+
+#: ``o3drbf photos``: the fit of a carved shell (dense and nearly noise-free,
+#: so fixed parameters; overrides of :data:`DEFAULTS`).
+PHOTO_DEFAULTS = {"delta": 4.0, "tau": 0.01, "lambda_surface": 1e-4, "exterior_ratio": 0.5, "surface_count": 3000, "mesh_resolution": 128}
 
 #: The paper's fixed values, used for parameters left at None with ``auto=False``.
 PAPER_VALUES = {"delta": 10.0, "tau": 0.01, "sigma": 0.1, "lambda_surface": 1e-3}

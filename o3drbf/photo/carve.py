@@ -44,6 +44,7 @@ from typing import Sequence
 import numpy as np
 
 from o3drbf.mesh.arrays import mesh_arrays, raycasting_scene
+from o3drbf.options import CARVE_DEFAULTS
 from o3drbf.progress import progress_bar
 from o3drbf.validation import as_rgb, check_number
 
@@ -67,16 +68,8 @@ __all__ = [
     "DEFAULTS",
 ]
 
-#: Default carving parameters.
-DEFAULTS = {
-    "resolution": 128,
-    "background": (0.0, 0.0, 0.0),
-    "threshold": 0.15,
-    "min_area": 64,
-    "photo_consistency": 0.12,
-    "sweeps": 3,
-    "min_views": 2,
-}
+#: Default carving parameters (the table lives in :mod:`o3drbf.options`).
+DEFAULTS = CARVE_DEFAULTS
 
 #: A camera sees a surface voxel when the ray toward its exposed point first
 #: hits the voxels' faces at most this many voxel sizes before the point (a

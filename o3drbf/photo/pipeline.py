@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from o3drbf.options import PHOTO_DEFAULTS
 from o3drbf.photo import carve as carving
 from o3drbf.validation import as_rgb
 
@@ -41,7 +42,6 @@ __all__ = ["add_photos_arguments", "main_photos", "run_photos", "PhotosResult", 
 log = logging.getLogger("o3drbf")
 
 #: Reconstruction defaults for carved shells (delta 3-5 measured better than the paper's 10).
-PHOTO_DEFAULTS = {"delta": 4.0, "tau": 0.01, "lambda_surface": 1e-4, "exterior_ratio": 0.5, "surface_count": 3000, "mesh_resolution": 128}
 
 
 @dataclass
