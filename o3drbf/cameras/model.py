@@ -820,8 +820,9 @@ def _load_bundler(path: Path, image_size=None) -> CameraSet:
     # each camera takes 5 lines and each point 3: bound the counts by the file before allocating
     if 5 * n_cams + 3 * n_pts > len(lines) - pos:
         raise w.error(
-            f"line {lineno}",
-            f"header announces {n_cams:,} cameras and {n_pts:,} points but the file has only {len(lines) - pos:,} more lines (truncated or corrupt header)",
+            None,
+            f"file ends early: the header (line {lineno}) announces {n_cams:,} cameras and {n_pts:,} points "
+            f"but only {len(lines) - pos:,} lines follow (truncated file or corrupt header)",
         )
     names = None
     for candidate in (path.parent / "list.txt", path.parent.parent / "list.txt"):
