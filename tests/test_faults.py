@@ -553,8 +553,10 @@ _SUB = textwrap.dedent(
                 Path(tmp).write_text("half written")
                 os.kill(os.getpid(), signal.SIGTERM)
                 import time; time.sleep(5)
-    else:  # the handler installed for good (twice: idempotent)
+    else:  # installed for good (twice: idempotent); the earlier handler os._exit()s: no unwinding,
+        # so only the clean-up in the handler can remove the temporary
         from o3drbf.io.files import install_signal_cleanup
+        signal.signal(signal.SIGTERM, lambda *a: os._exit(99))
         install_signal_cleanup()
         install_signal_cleanup()
         import contextlib
@@ -567,7 +569,7 @@ _SUB = textwrap.dedent(
 )
 
 
-@pytest.mark.parametrize("mode,code,pattern", [("fsize", 2, "file size limit"), ("sigterm", 143, ""), ("sigterm-installed", 143, "")])
+@pytest.mark.parametrize("mode,code,pattern", [("fsize", 2, "file size limit"), ("sigterm", 143, ""), ("sigterm-installed", 99, "")])
 def test_disk_limit_and_sigterm_leave_no_partial_file(tmp_path, mode, code, pattern):
     out = tmp_path / "out.ply"
     out.write_text("previous output")
