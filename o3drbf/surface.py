@@ -132,7 +132,19 @@ class ImplicitSurface:
             "normalization": self.normalization.to_dict(),
             "metadata": self.metadata,
         }
-        with atomic_path(path) as tmp:
+        from o3drbf.io.files import check_outputs
+
+        check_outputs([path])
+
+        def verify(tmp):  # read back (validated) before the rename: a short write fails here
+            try:
+                back = type(self).load(tmp)
+            except ValueError as exc:
+                raise OSError(f"cannot write {path}: the model read back is invalid ({_one_line(exc)}); nothing was written") from None
+            if back.centres.shape != self.centres.shape or not np.array_equal(back.weights, self.weights):
+                raise OSError(f"cannot write {path}: the model read back differs; nothing was written")
+
+        with atomic_path(path, verify=verify) as tmp:
             with open(tmp, "wb") as fh:
                 np.savez(
                     fh,

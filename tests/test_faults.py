@@ -755,3 +755,65 @@ def test_soak_repeated_reconstructions_bounded_memory():
     gc.collect()
     growth = proc.memory_info().rss - rss0
     assert growth < 50 * 2**20, f"RSS grew by {growth / 2**20:.1f} MiB over 30 runs"
+
+
+# -- 11. every output kind goes through the one checked, atomic helper -------------------------
+
+
+def _write_kind(kind: str, path: Path) -> None:
+    if kind == "mesh":
+        write_mesh(path, sphere_mesh())
+    elif kind == "points":
+        write_points(path, GOOD_PTS)
+    elif kind == "model":
+        tiny_surface().save(path)
+    elif kind == "cameras":
+        from o3drbf.cameras.model import Camera, save_cameras_json
+
+        save_cameras_json(path, [Camera.from_dict(CAM)], points=GOOD_PTS[:3])
+    elif kind == "tables":
+        from o3drbf.evaluation.compare import write_tables
+
+        write_tables([{"method": "x"}], path.parent, stem=path.stem)
+    elif kind == "picture":
+        from o3drbf.photo.pipeline import picture
+        from o3drbf.cameras.model import Camera
+
+        picture(sphere_mesh(offset=0.0), Camera.from_dict({**CAM, "t": [0, 0, 4], "width": 16, "height": 16}), np.zeros((16, 16, 3)), path)
+
+
+OUTPUT_KINDS = {"mesh": "o.ply", "points": "o.xyz", "model": "o.npz", "cameras": "o.json", "tables": "o.csv", "picture": "o.png"}
+
+
+@pytest.mark.parametrize("kind", sorted(OUTPUT_KINDS))
+@pytest.mark.parametrize("fault", ["disk full at flush", "short write"])
+def test_every_output_kind_is_atomic_and_checked(tmp_path, monkeypatch, kind, fault):
+    import o3drbf.io.files as files
+
+    out = tmp_path / OUTPUT_KINDS[kind]
+    out.write_text("the previous output")
+    before = snapshot(tmp_path)
+    if fault == "disk full at flush":
+        def fsync(fd):
+            raise OSError(28, "No space left on device")
+
+        monkeypatch.setattr(files.os, "fsync", fsync)
+        pattern = "disk is full"
+    else:  # the writer's file comes out empty, or cut short for the verified kinds
+        real_verify_entry = files.atomic_path
+
+        @files.contextlib.contextmanager
+        def cutting(path, verify=None):
+            with real_verify_entry(path, verify=verify) as tmp:
+                yield tmp
+                data = Path(tmp).read_bytes()
+                Path(tmp).write_bytes(data[: len(data) // 3] if verify is not None else b"")
+
+        monkeypatch.setattr(files, "atomic_path", cutting)
+        import o3drbf.surface
+
+        monkeypatch.setattr(o3drbf.surface, "atomic_path", cutting)
+        pattern = "cannot write"
+    with pytest.raises(OSError, match=pattern):
+        _write_kind(kind, out)
+    assert snapshot(tmp_path) == before and not temporaries(tmp_path)

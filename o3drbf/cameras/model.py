@@ -623,7 +623,13 @@ def save_cameras_json(path: str | os.PathLike, cameras, points=None, point_camer
             data["point_camera"] = pc.tolist()
     elif point_camera is not None:
         raise ValueError("point_camera given without points")
-    with atomic_path(path) as tmp:
+    def verify(tmp):  # read back before the rename: a short write would not parse
+        try:
+            json.loads(Path(tmp).read_text(encoding="utf-8"))
+        except (ValueError, OSError) as exc:
+            raise OSError(f"cannot write {path}: the file read back is not valid JSON ({exc}); nothing was written") from None
+
+    with atomic_path(path, verify=verify) as tmp:
         with open(tmp, "w", encoding="utf-8") as fh:
             json.dump(data, fh)
     return path
