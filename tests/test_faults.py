@@ -817,3 +817,31 @@ def test_every_output_kind_is_atomic_and_checked(tmp_path, monkeypatch, kind, fa
     with pytest.raises(OSError, match=pattern):
         _write_kind(kind, out)
     assert snapshot(tmp_path) == before and not temporaries(tmp_path)
+
+
+@pytest.mark.parametrize(
+    "output,model,cameras,exc,pattern",
+    [
+        ("in.ply", None, None, ValueError, "is the input file"),
+        ("o.ply", "o.ply", None, ValueError, "must end in .npz"),
+        ("o.ply", "in.npz", "in.npz", ValueError, "is the input file"),
+        ("a.ply", None, "s.conf", ValueError, "a file an input refers to"),
+        ("o.stl", None, None, ValueError, "the .stl format would move vertices"),
+    ],
+)
+def test_reconstruct_file_checks(tmp_path, output, model, cameras, exc, pattern):
+    import argparse
+
+    from o3drbf.cli.commands import check_reconstruct_files
+
+    _scan_dir(tmp_path)
+    (tmp_path / "in.ply").write_text(ply_text(GOOD_PTS))
+    (tmp_path / "in.npz").write_bytes(b"model")
+    before = snapshot(tmp_path)
+    j = lambda name: None if name is None else str(tmp_path / name)  # noqa: E731
+    args = argparse.Namespace(input=j("in.ply"), output=j(output), save_model=j(model), cameras=j(cameras))
+    with pytest.raises(exc, match=pattern):
+        check_reconstruct_files(args, GOOD_PTS + 1e6)
+    assert snapshot(tmp_path) == before and not temporaries(tmp_path)
+    ok = argparse.Namespace(input=j("in.ply"), output=j("fine.ply"), save_model=j("m.npz"), cameras=None)
+    assert check_reconstruct_files(ok, GOOD_PTS + 1e6) == tmp_path / "fine.ply"

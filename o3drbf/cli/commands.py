@@ -19,7 +19,7 @@ from pathlib import Path
 
 from o3drbf.pipeline import DEFAULTS
 
-__all__ = ["main", "build_parser"]
+__all__ = ["main", "build_parser", "check_reconstruct_files"]
 
 log = logging.getLogger("o3drbf")
 
@@ -392,6 +392,39 @@ def _memory_message(exc: MemoryError) -> str:
         f"out of memory: {text}{free}; use fewer constraints (--surface-count), a coarser --resolution, "
         "or --solver fast, or free memory (nothing was written)"
     )
+
+
+def check_reconstruct_files(args: argparse.Namespace, points=None) -> "Path":
+    """All the file checks of ``reconstruct``, for ``_reconstruct`` to call before any costly step.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``output``, ``input``, and optionally ``save_model`` and ``cameras``.
+    points : (N, 3) array, optional
+        The input points, once read: the output format must hold their
+        coordinates (:func:`o3drbf.io.files.check_mesh_precision`).
+
+    Returns
+    -------
+    Path
+        The output mesh path.
+
+    Raises
+    ------
+    ValueError, FileNotFoundError, PermissionError
+        One line naming the option and the fix.
+    """
+    from o3drbf.io import files as io
+
+    out = io.check_output(args.output)
+    model = getattr(args, "save_model", None)
+    if model and Path(model).suffix != ".npz":
+        raise ValueError(f"--save-model must end in .npz, got {model!r}")
+    io.check_outputs([out, model], [args.input, getattr(args, "cameras", None)])
+    if points is not None:
+        io.check_mesh_precision(out, points)
+    return out
 
 
 if __name__ == "__main__":  # pragma: no cover
