@@ -358,6 +358,10 @@ def _vertex_error(original: np.ndarray, back: np.ndarray) -> float:
     """Symmetric largest nearest-neighbour distance (formats may reorder or unshare vertices)."""
     if len(back) == 0:
         return float("inf") if len(original) else 0.0
+    if back.shape == original.shape:  # same order (PLY, OFF): no search needed
+        direct = float(np.abs(back - original).max(initial=0.0))
+        if direct == 0.0:
+            return 0.0
     from scipy.spatial import cKDTree
 
     d1 = cKDTree(original).query(back)[0].max()
