@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -131,7 +132,19 @@ class ImplicitSurface:
             "normalization": self.normalization.to_dict(),
             "metadata": self.metadata,
         }
-        with atomic_path(path) as tmp:
+        from o3drbf.io.files import check_outputs
+
+        check_outputs([path])
+
+        def verify(tmp):  # read back (validated) before the rename: a short write fails here
+            try:
+                back = type(self).load(tmp)
+            except ValueError as exc:
+                raise OSError(f"cannot write {path}: the model read back is invalid ({_one_line(exc)}); nothing was written") from None
+            if back.centres.shape != self.centres.shape or not np.array_equal(back.weights, self.weights):
+                raise OSError(f"cannot write {path}: the model read back differs; nothing was written")
+
+        with atomic_path(path, verify=verify) as tmp:
             with open(tmp, "wb") as fh:
                 np.savez(
                     fh,
@@ -146,24 +159,116 @@ class ImplicitSurface:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "ImplicitSurface":
-        """Read a model written by :meth:`save`."""
+        """Read a model written by :meth:`save`, validating every field.
+
+        Never unpickles (``allow_pickle=False``).  Checks the header (JSON
+        object, format, version, kernel through :func:`make_kernel`), the
+        arrays' shapes, dtypes and finiteness, and that there is one weight
+        per centre and one polynomial coefficient per basis term.
+
+        Raises
+        ------
+        FileNotFoundError
+            No such file.
+        ValueError
+            Not a zip/npz file, truncated, or a field is missing or invalid;
+            the message names the file and the field.
+        """
         path = Path(path)
+        if not path.exists():
+            raise FileNotFoundError(f"model file not found: {path}")
+        if path.is_dir():
+            raise ValueError(f"model {path} is a folder; give the .npz file written by --save-model")
+        arrays = {}
         try:
             with np.load(path, allow_pickle=False) as data:
-                header = json.loads(str(data["header"]))
-                arrays = {k: data[k] for k in ("centres", "weights", "poly", "center", "scale")}
+                if not hasattr(data, "files"):
+                    raise ValueError("holds a single array, not an o3drbf model")
+                for key in ("header", *_ARRAYS):
+                    if key not in data.files:
+                        raise ValueError(f"field {key!r} is missing")
+                    try:
+                        arrays[key] = data[key]
+                    except ValueError as exc:  # object arrays need pickle: refused
+                        raise ValueError(f"field {key!r} cannot be read without pickle ({exc})") from None
         except FileNotFoundError:
             raise FileNotFoundError(f"model file not found: {path}") from None
-        except (OSError, ValueError, KeyError) as exc:
-            raise ValueError(f"{path} is not an o3drbf model file ({exc})") from None
+        except ValueError as exc:
+            raise ValueError(f"{path} is not an o3drbf model file: {_one_line(exc)}") from None
+        except (OSError, EOFError, KeyError, zipfile.BadZipFile, RuntimeError) as exc:  # truncated or not a zip
+            raise ValueError(f"{path} is not an o3drbf model file (truncated or not an .npz): {_one_line(exc)}") from None
+
+        def bad(field_name: str, message: str) -> ValueError:
+            return ValueError(f"{path}: field {field_name!r} {message}; the file is corrupt or not written by o3drbf")
+
+        raw = arrays["header"]
+        if raw.shape != () or raw.dtype.kind != "U":
+            raise bad("header", f"must be one JSON string, got dtype {raw.dtype} shape {raw.shape}")
+        try:
+            header = json.loads(str(raw))
+        except (json.JSONDecodeError, RecursionError) as exc:
+            raise bad("header", f"is not valid JSON ({_one_line(exc)})") from None
+        if not isinstance(header, dict):
+            raise bad("header", f"must be a JSON object, got {type(header).__name__}")
         if header.get("format") != _FORMAT:
-            raise ValueError(f"{path} is not an o3drbf model file (format {header.get('format')!r})")
-        if header.get("version", 0) > _VERSION:
-            raise ValueError(f"{path} was written by a newer o3drbf (version {header['version']})")
-        kernel = make_kernel(**header["kernel"])
+            raise bad("header.format", f"is {header.get('format')!r}, expected {_FORMAT!r}")
+        version = header.get("version")
+        if not isinstance(version, int) or isinstance(version, bool) or version < 1:
+            raise bad("header.version", f"must be a whole number >= 1, got {version!r}")
+        if version > _VERSION:
+            raise ValueError(f"{path} was written by a newer o3drbf (version {version}); upgrade o3drbf to read it")
+        kdict = header.get("kernel")
+        if not isinstance(kdict, dict) or not isinstance(kdict.get("name"), str):
+            raise bad("header.kernel", f"must be an object with a 'name', got {kdict!r}")
+        kparams = {k: v for k, v in kdict.items() if k != "name"}
+        for k, v in kparams.items():
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not np.isfinite(v):
+                raise bad(f"header.kernel.{k}", f"must be a finite number, got {v!r}")
+        try:
+            kernel = make_kernel(kdict["name"], **kparams)
+        except ValueError as exc:
+            raise bad("header.kernel", f"is invalid: {_one_line(exc)}") from None
+        metadata = header.get("metadata", {})
+        if not isinstance(metadata, dict):
+            raise bad("header.metadata", f"must be a JSON object, got {type(metadata).__name__}")
+
+        def floats(key: str, shape: tuple) -> np.ndarray:
+            a = arrays[key]
+            if a.dtype.kind not in "fiu":
+                raise bad(key, f"must hold numbers, got dtype {a.dtype}")
+            if a.shape != shape:
+                raise bad(key, f"has shape {a.shape}, expected {shape}")
+            a = a.astype(float, copy=False)
+            if not np.isfinite(a).all():
+                raise bad(key, "has NaN or infinite entries")
+            return a
+
+        a = arrays["centres"]
+        if a.ndim != 2 or a.shape[1:] != (3,):
+            raise bad("centres", f"has shape {a.shape}, expected (N, 3)")
+        n = a.shape[0]
+        if n == 0:
+            raise bad("centres", "is empty (no RBF centre)")
+        centres = floats("centres", (n, 3))
+        if arrays["weights"].shape != (n,):
+            raise bad("weights", f"has shape {arrays['weights'].shape}, expected ({n},): one weight per centre (count mismatch)")
+        weights = floats("weights", (n,))
+        m = polynomial_basis(np.zeros((1, 3)), kernel.polynomial_degree).shape[1]
+        poly = floats("poly", (m,))
+        center = floats("center", (3,))
+        scale = float(floats("scale", ())[()])
+        if scale <= 0:
+            raise bad("scale", f"must be > 0, got {scale!r}")
         # Normalization stored as arrays too, so the round trip is bit-exact.
-        norm = Normalization(center=arrays["center"], scale=float(arrays["scale"]))
-        return cls(kernel, arrays["centres"], arrays["weights"], arrays["poly"], norm, header.get("metadata", {}))
+        norm = Normalization(center=center, scale=scale)
+        return cls(kernel, centres, weights, poly, norm, metadata)
+
+
+_ARRAYS = ("centres", "weights", "poly", "center", "scale")
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
 
 
 def _json_default(o):

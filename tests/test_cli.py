@@ -70,8 +70,8 @@ def test_points_without_normals(scan, capsys, caplog):
         (["{d}/torus.ply", "-o", "{d}/nofolder/x.ply"], "output folder does not exist"),
         (["{d}/torus.ply", "-o", "{d}/x.ply", "--delta", "-3"], "delta must be"),
         (["{d}/torus.ply", "-o", "{d}/x.ply", "--lambda-surface", "-1"], "lambda_surface must be"),
-        (["{d}/empty.ply", "-o", "{d}/x.ply"], "holds no points"),
-        (["{d}/garbage.ply", "-o", "{d}/x.ply"], "holds no points"),
+        (["{d}/empty.ply", "-o", "{d}/x.ply"], "no points (truncated or empty file)"),
+        (["{d}/garbage.ply", "-o", "{d}/x.ply"], "not a PLY file"),
         (["{d}/torus.ply", "-o", "{d}/x.ply", "--save-model", "{d}/m.txt"], "must end in .npz"),
     ],
 )

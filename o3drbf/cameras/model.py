@@ -55,6 +55,7 @@ __all__ = [
     "as_cameras",
     "load_cameras",
     "load_range_scans",
+    "referenced_files",
     "save_cameras_json",
     "quaternion_to_matrix",
 ]
@@ -545,9 +546,15 @@ def _read_lines(path: Path) -> list[str]:
 def _load_json(path: Path) -> CameraSet:
     w = _Where(path)
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
+        data = json.loads(path.read_bytes().decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise w.error(None, f"not a text JSON file (undecodable byte at offset {exc.start}); give a UTF-8 JSON camera file") from None
+    except RecursionError:
+        raise w.error(None, "JSON nested too deeply; give a camera file as documented") from None
     except json.JSONDecodeError as exc:
         raise w.error(f"line {exc.lineno}", f"invalid JSON: {exc.msg}") from None
+    except OSError as exc:
+        raise w.error(None, f"cannot read: {exc.strerror}") from None
     if not isinstance(data, dict) or not ({"cameras", "centers"} & set(data)):
         raise w.error(None, 'expected a JSON object with "cameras" (list of {K, R, t, width, height}) or "centers"')
     cameras = []
@@ -570,9 +577,14 @@ def _load_json(path: Path) -> CameraSet:
         except ValueError as exc:
             raise w.error(None, str(exc)) from None
         if "colors" in data:
-            colors = np.asarray(data["colors"], dtype=float)
+            try:
+                colors = np.asarray(data["colors"], dtype=float)
+            except (TypeError, ValueError):
+                raise w.error(None, '"colors" must be a list of [r, g, b] numbers, one per point (ragged or non-numeric entries)') from None
             if colors.shape != points.shape:
                 raise w.error(None, f'"colors" has shape {colors.shape}; expected {points.shape}, one per point')
+            if not np.isfinite(colors).all() or colors.min() < 0 or colors.max() > 1:
+                raise w.error(None, '"colors" must be finite and in [0, 1]')
     if "point_camera" in data:
         if points is None:
             raise w.error(None, '"point_camera" given without "points"')
@@ -675,7 +687,13 @@ def save_cameras_json(path: str | os.PathLike, cameras, points=None, point_camer
             data["point_camera"] = pc.tolist()
     elif point_camera is not None:
         raise ValueError("point_camera given without points")
-    with atomic_path(path) as tmp:
+    def verify(tmp):  # read back before the rename: a short write would not parse
+        try:
+            json.loads(Path(tmp).read_text(encoding="utf-8"))
+        except (ValueError, OSError) as exc:
+            raise OSError(f"cannot write {path}: the file read back is not valid JSON ({exc}); nothing was written") from None
+
+    with atomic_path(path, verify=verify) as tmp:
         with open(tmp, "w", encoding="utf-8") as fh:
             json.dump(data, fh)
     return path
@@ -855,6 +873,13 @@ def _load_bundler(path: Path, image_size=None) -> CameraSet:
     if (head != np.round(head)).any() or (head < 0).any():
         raise w.error(f"line {lineno}", f"expected two counts, got {head.tolist()}")
     n_cams, n_pts = int(head[0]), int(head[1])
+    # each camera takes 5 lines and each point 3: bound the counts by the file before allocating
+    if 5 * n_cams + 3 * n_pts > len(lines) - pos:
+        raise w.error(
+            None,
+            f"file ends early: the header (line {lineno}) announces {n_cams:,} cameras and {n_pts:,} points "
+            f"but only {len(lines) - pos:,} lines follow (truncated file or corrupt header)",
+        )
     names = None
     for candidate in (path.parent / "list.txt", path.parent.parent / "list.txt"):
         if candidate.is_file():
@@ -1059,6 +1084,58 @@ def load_cameras(path: str | os.PathLike, image_size: tuple[int, int] | None = N
     if kind == "bundler":
         return _load_bundler(target, image_size)
     return _load_stanford(target, read_scans)
+
+
+def referenced_files(path: str | os.PathLike) -> list[Path]:
+    """Files an input refers to, which an output must never overwrite.
+
+    The scans of a Stanford ``.conf``, the images of a Middlebury
+    calibration or a Bundler ``list.txt``, and the files of a COLMAP text
+    model.  Other inputs refer to nothing.  Reading is cheap (no scan or
+    image is opened).
+
+    Parameters
+    ----------
+    path : path-like
+
+    Returns
+    -------
+    list of Path
+        Existing or not; empty when ``path`` cannot be read as a camera file.
+    """
+    path = Path(path)
+    if not path.exists():
+        return []
+    try:
+        kind, target = _detect(path)
+    except ValueError:
+        return []
+    out: list[Path] = []
+    if kind == "stanford":
+        for s in _read_lines(target):
+            tok = s.split()
+            if len(tok) >= 2 and tok[0] in ("bmesh", "mesh"):
+                out.append(target.parent / tok[1])
+    elif kind == "middlebury":
+        for s in _read_lines(target)[1:]:
+            tok = s.split()
+            if tok:
+                out.append(target.parent / tok[0])
+    elif kind == "colmap":
+        out += [target / n for n in ("cameras.txt", "images.txt", "points3D.txt")]
+    elif kind == "bundler":
+        for candidate in (target.parent / "list.txt", target.parent.parent / "list.txt"):
+            if candidate.is_file():
+                out.append(candidate)
+                for s in _read_lines(candidate):
+                    if s.strip():
+                        name = s.split()[0]
+                        out += [candidate.parent / name, target.parent / name]
+                break
+        out.append(target)
+    elif kind == "json":
+        out.append(target)
+    return out
 
 
 def load_range_scans(conf_path: str | os.PathLike) -> CameraSet:

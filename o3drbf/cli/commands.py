@@ -20,7 +20,7 @@ from pathlib import Path
 from o3drbf.io.files import MESH_FORMATS
 from o3drbf.options import DEFAULTS
 
-__all__ = ["main", "build_parser"]
+__all__ = ["main", "build_parser", "check_reconstruct_files"]
 
 log = logging.getLogger("o3drbf")
 
@@ -179,38 +179,22 @@ def _version() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=logging.INFO if getattr(args, "verbose", False) else logging.WARNING,
-        format="o3drbf: %(message)s",
-        stream=sys.stderr,
-    )
+    """Run the command line; returns the exit status.
+
+    0 success; 2 bad input or usage (one line naming the problem); 1 an
+    unexpected failure (one line, the traceback with ``-v``); 130 interrupted
+    (Ctrl-C); 128 + N on signal N (SIGTERM: 143).  Outputs are atomic: on
+    any failure or interruption no partial file is left and an existing
+    output is unchanged.
+    """
+    from o3drbf.io.files import signal_cleanup
+
     try:
-        if args.command == "reconstruct":
-            return _reconstruct(args)
-        if args.command == "compare":
-            from o3drbf.evaluation.compare import main_compare
-
-            return main_compare(args)
-        if args.command == "photos":
-            from o3drbf.photo.pipeline import main_photos
-
-            return main_photos(args)
-        if args.command == "view":
-            try:
-                from o3drbf.viewers.app import main_view
-            except ImportError as exc:
-                raise ImportError(f"o3drbf view needs the viewers package and PyVista ({exc}); pip install 'o3drbf[view]'") from None
-            return main_view(args)
-    except (ValueError, FileNotFoundError, MemoryError, RuntimeError, OSError, ImportError) as exc:
-        print(f"o3drbf: error: {_one_line(exc)}", file=sys.stderr)
-        return 2
+        with signal_cleanup():
+            return _main(argv)
     except KeyboardInterrupt:
         print("o3drbf: interrupted", file=sys.stderr)
         return 130
-    parser.error(f"unknown command {args.command!r}")
-    return 2
 
 
 def _one_line(exc: BaseException) -> str:
@@ -306,6 +290,124 @@ def summary(result, points, input_path, output_path, model_path=None, seconds=No
     if seconds is not None:
         lines.append(f"  total time       {seconds:.1f} s")
     return "\n".join(lines)
+
+
+# -- argument and failure helpers (used by main) ---------------------------------------
+
+
+def _main(argv: list[str] | None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _check_args(parser, args)
+    logging.basicConfig(
+        level=logging.INFO if getattr(args, "verbose", False) else logging.WARNING,
+        format="o3drbf: %(message)s",
+        stream=sys.stderr,
+    )
+    try:
+        if args.command == "reconstruct":
+            return _reconstruct(args)
+        if args.command == "compare":
+            from o3drbf.evaluation.compare import main_compare
+
+            return main_compare(args)
+        if args.command == "photos":
+            from o3drbf.photo.pipeline import main_photos
+
+            return main_photos(args)
+        if args.command == "view":
+            try:
+                from o3drbf.viewers.app import main_view
+            except ImportError as exc:
+                raise ImportError(f"o3drbf view needs the viewers package and PyVista ({exc}); pip install 'o3drbf[view]'") from None
+            return main_view(args)
+    except MemoryError as exc:
+        print(f"o3drbf: error: {_memory_message(exc)}", file=sys.stderr)
+        return 2
+    except (ValueError, FileNotFoundError, RuntimeError, OSError, ImportError) as exc:
+        print(f"o3drbf: error: {_one_line(exc)}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        raise
+    except Exception as exc:  # a bug: one line, the traceback with -v
+        if getattr(args, "verbose", False):
+            import traceback
+
+            traceback.print_exc()
+        print(
+            f"o3drbf: internal error: {type(exc).__name__}: {_one_line(exc)} (run with -v for the traceback; please report it)",
+            file=sys.stderr,
+        )
+        return 1
+    parser.error(f"unknown command {args.command!r}")
+    return 2
+
+
+def _check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Refuse values argparse's types let through, naming the option (exit 2).
+
+    NaN or infinite numbers for any option, and a negative ``--seed`` or
+    ``--sphere-count``.
+    """
+    import math
+
+    for dest, value in sorted(vars(args).items()):
+        option = "--" + dest.replace("_", "-")
+        if isinstance(value, float) and not math.isfinite(value):
+            parser.error(f"argument {option}: expected a finite number, got {value!r}")
+        if dest in ("seed", "sphere_count") and isinstance(value, int) and not isinstance(value, bool) and value < 0:
+            parser.error(f"argument {option}: expected a whole number >= 0, got {value}")
+        if dest == "seed" and isinstance(value, int) and value >= 2**63:
+            parser.error(f"argument {option}: expected a number below 2**63, got {value}")
+
+
+def _memory_message(exc: MemoryError) -> str:
+    """One line: how much memory was asked for, how much is free, and what to change."""
+    text = _one_line(exc) if str(exc) else "out of memory"
+    free = ""
+    try:
+        from o3drbf.solvers.base import available_memory
+
+        free = f" ({available_memory() / 2**30:.2f} GiB available)"
+    except Exception:  # noqa: BLE001 - the message must not fail
+        pass
+    return (
+        f"out of memory: {text}{free}; use fewer constraints (--surface-count), a coarser --resolution, "
+        "or --solver fast, or free memory (nothing was written)"
+    )
+
+
+def check_reconstruct_files(args: argparse.Namespace, points=None) -> "Path":
+    """All the file checks of ``reconstruct``, for ``_reconstruct`` to call before any costly step.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``output``, ``input``, and optionally ``save_model`` and ``cameras``.
+    points : (N, 3) array, optional
+        The input points, once read: the output format must hold their
+        coordinates (:func:`o3drbf.io.files.check_mesh_precision`).
+
+    Returns
+    -------
+    Path
+        The output mesh path.
+
+    Raises
+    ------
+    ValueError, FileNotFoundError, PermissionError
+        One line naming the option and the fix.
+    """
+    from o3drbf.io import files as io
+
+    out = io.check_output(args.output)
+    model = getattr(args, "save_model", None)
+    if model and Path(model).suffix != ".npz":
+        raise ValueError(f"--save-model must end in .npz, got {model!r}")
+    io.check_outputs([out, model], [args.input, getattr(args, "cameras", None)])
+    if points is not None:
+        io.check_mesh_precision(out, points)
+    return out
 
 
 if __name__ == "__main__":  # pragma: no cover

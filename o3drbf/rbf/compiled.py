@@ -29,7 +29,7 @@ try:  # numba is a dependency, but the library still works (slower) without it
 except ImportError:  # pragma: no cover
     HAVE_NUMBA = False
 
-__all__ = ["HAVE_NUMBA", "direct_sum", "direct_matrix", "supports"]
+__all__ = ["HAVE_NUMBA", "direct_sum", "direct_matrix", "supports", "check_sum_arrays", "table_sum", "supports_table", "KernelTable"]
 
 # kernel codes
 _MULTIORDER, _GAUSSIAN, _THINPLATE = 0, 1, 2
@@ -156,12 +156,32 @@ if HAVE_NUMBA:
                 out[i, j] = _phi(code, p, math.sqrt(dx * dx + dy * dy + dz * dz))
 
 
-def direct_sum(kernel, centres, weights, targets, gradient: bool = False):
-    """Compiled kernel sum; same contract as :func:`o3drbf.rbf.sums.kernel_sum`."""
-    code, p = _params(kernel)
+def check_sum_arrays(centres, weights, targets) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The arrays handed to compiled code: ``(N, 3)``, ``(N,)``, ``(M, 3)`` float64, finite, contiguous.
+
+    Numba does not bounds-check: a shape mismatch would read past an array,
+    and a NaN distance would turn into a wild table index.  So every entry
+    point checks here and raises ``ValueError`` instead.
+    """
     c = np.ascontiguousarray(centres, dtype=float)
     w = np.ascontiguousarray(weights, dtype=float)
     t = np.ascontiguousarray(targets, dtype=float)
+    if c.ndim != 2 or c.shape[1] != 3:
+        raise ValueError(f"centres must have shape (N, 3), got {c.shape}")
+    if w.shape != (c.shape[0],):
+        raise ValueError(f"weights must have shape ({c.shape[0]},), one per centre, got {w.shape}")
+    if t.ndim != 2 or t.shape[1] != 3:
+        raise ValueError(f"targets must have shape (M, 3), got {t.shape}")
+    for name, a in (("centres", c), ("weights", w), ("targets", t)):
+        if not np.isfinite(a).all():
+            raise ValueError(f"{name} have NaN or infinite entries; compiled sums need finite input")
+    return c, w, t
+
+
+def direct_sum(kernel, centres, weights, targets, gradient: bool = False):
+    """Compiled kernel sum; same contract as :func:`o3drbf.rbf.sums.kernel_sum`."""
+    code, p = _params(kernel)
+    c, w, t = check_sum_arrays(centres, weights, targets)
     out = np.empty(len(t))
     if gradient:
         grad = np.empty((len(t), 3))
@@ -174,8 +194,15 @@ def direct_sum(kernel, centres, weights, targets, gradient: bool = False):
 def direct_matrix(kernel, x, y):
     """Compiled dense kernel matrix, Fortran order."""
     code, p = _params(kernel)
+    x = np.ascontiguousarray(x, float)
+    y = np.ascontiguousarray(y, float)
+    for name, a in (("x", x), ("y", y)):
+        if a.ndim != 2 or a.shape[1] != 3:
+            raise ValueError(f"{name} must have shape (N, 3), got {a.shape}")
+        if not np.isfinite(a).all():
+            raise ValueError(f"{name} has NaN or infinite entries; compiled kernels need finite input")
     out = np.empty((len(x), len(y)), order="F")
-    _matrix(code, p, np.ascontiguousarray(x, float), np.ascontiguousarray(y, float), out)
+    _matrix(code, p, x, y, out)
     return out
 
 
@@ -317,9 +344,10 @@ def supports_table(kernel) -> bool:
 
 def table_sum(table: KernelTable, centres, weights, targets, gradient: bool = False):
     """Approximate (tabulated) kernel sum; same contract as ``direct_sum``."""
-    c = np.ascontiguousarray(centres, dtype=float)
-    w = np.ascontiguousarray(weights, dtype=float)
-    t = np.ascontiguousarray(targets, dtype=float)
+    c, w, t = check_sum_arrays(centres, weights, targets)
+    coef1, coef2 = table.args()[:2]
+    if coef1.ndim != 2 or coef1.shape[1] != 4 or coef1.shape[0] < 1 or coef2.ndim != 2 or coef2.shape[1] != 4 or coef2.shape[0] < 1:
+        raise ValueError(f"kernel table has shapes {coef1.shape}, {coef2.shape}; expected (n, 4) each with n >= 1")
     out = np.empty(len(t))
     if gradient:
         grad = np.empty((len(t), 3))
