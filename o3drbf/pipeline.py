@@ -44,6 +44,7 @@ __all__ = [
     "OutlierReport",
     "ConstraintSet",
     "Parameters",
+    "merge_repeated",
     "remove_outliers",
     "ensure_normals",
     "estimate_normals",
@@ -176,6 +177,8 @@ class Report:
         Points used (after repairs and outlier removal).
     input_points : int
         Points given.
+    duplicates_merged : int
+        Exactly repeated points merged (their normals and colours averaged).
     outliers_removed : int
     outlier_method, outlier_reason : str
     normals_estimated : bool
@@ -202,6 +205,7 @@ class Report:
 
     points: int = 0
     input_points: int = 0
+    duplicates_merged: int = 0
     outliers_removed: int = 0
     outlier_method: str = "none"
     outlier_reason: str = ""
@@ -300,6 +304,21 @@ def peak_rss_mb() -> float:
 
 # --------------------------------------------------------------------------
 # stages
+
+
+def merge_repeated(data: PointSet) -> tuple[PointSet, int]:
+    """Merge exactly repeated points (real pipelines produce them), averaging their normals and colours.
+
+    Returns the PointSet and how many rows were merged (logged when any).
+    """
+    from o3drbf.prep.duplicates import merge_duplicates
+
+    points, normals, colors, point_camera, merged = merge_duplicates(data.points, data.normals, data.colors, data.point_camera)
+    if not merged:
+        return data, 0
+    log.warning("%d repeated point(s) merged", merged)
+    kept = PointSet.create(points, normals, cameras=data.cameras, point_camera=point_camera, colors=colors, source=data.source)
+    return kept, merged
 
 
 def remove_outliers(data: PointSet, options: OutlierOptions = OutlierOptions(), *, seed: int = 0) -> tuple[PointSet, OutlierReport]:
@@ -685,7 +704,7 @@ def reconstruct(points, normals=None, *, cameras=None, point_camera=None, colors
     Raises
     ------
     ValueError
-        Empty, NaN, too few or duplicated points, wrong shapes, unknown
+        Empty, NaN or too few points, wrong shapes, unknown
         options, parameters out of range or not belonging to the kernel:
         all before any costly step.
     RuntimeError
@@ -709,14 +728,9 @@ def reconstruct(points, normals=None, *, cameras=None, point_camera=None, colors
     opts = Options.create(options, **option_values).validate()
     stages = _Stages()
     with stages.stage("read"):
-        if isinstance(points, PointSet):
-            data = points
-        else:
-            from o3drbf.validation import as_points
-
-            data = PointSet.create(points, normals, cameras=cameras, point_camera=point_camera, colors=colors)
-            as_points(data.points, allow_duplicates=False)
-    n_input = len(data)
+        data = points if isinstance(points, PointSet) else PointSet.create(points, normals, cameras=cameras, point_camera=point_camera, colors=colors)
+        data, merged = merge_repeated(data)
+    n_input = len(data) + merged
     with stages.stage("outliers"):
         data, outliers = remove_outliers(data, opts.outliers, seed=seed)
     with stages.stage("normals"):
@@ -741,6 +755,7 @@ def reconstruct(points, normals=None, *, cameras=None, point_camera=None, colors
     report = Report(
         points=len(data),
         input_points=n_input,
+        duplicates_merged=merged,
         outliers_removed=outliers.removed,
         outlier_method=outliers.method,
         outlier_reason=outliers.reason,

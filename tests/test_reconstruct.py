@@ -113,7 +113,6 @@ def test_bad_input_gets_a_clear_error():
         (np.zeros((0, 3)), None, {}, "points is empty"),
         (p[:5], n[:5], {}, "at least 10 needed"),
         (np.vstack([p[:-1], [[np.nan, 0, 0]]]), n, {}, "NaN"),
-        (np.vstack([p, p[:3]]), np.vstack([n, n[:3]]), {}, "duplicated point"),
         (p[:, :2], None, {}, r"shape \(N, 3\)"),
         (p, n[:-1], {}, r"one row per point"),
         (p, np.zeros_like(n), {}, "zero-length"),
@@ -152,3 +151,9 @@ def test_fast_solver_gives_the_dense_surface():
     probe = np.random.default_rng(0).uniform(-1, 1, (2000, 3))
     fd, ff = dense.surface(probe), fast.surface(probe)
     assert np.max(np.abs(ff - fd)) < 1e-4 * np.max(np.abs(fd))  # rtol 1e-6 solve, ~100x amplification in f
+
+
+def test_repeated_points_are_merged_with_a_note():
+    p, n = Sphere(1.0).sample(400, seed=2)
+    r = o3drbf.reconstruct(np.vstack([p, p[:7]]), np.vstack([n, n[:7]]), surface_count=100, extract_mesh=False, outliers="none")
+    assert r.report.duplicates_merged == 7 and r.report.points == 400 and r.report.input_points == 407

@@ -210,16 +210,9 @@ def _reconstruct(args) -> int:
 
     t0 = time.perf_counter()
     options = options_from_args(args).validate()
-    out = io.check_output(args.output, inputs=[args.input])
-    if args.save_model:
-        model = Path(args.save_model)
-        if model.suffix != ".npz":
-            raise ValueError(f"--save-model must end in .npz, got {args.save_model!r}")
-        if model.resolve() == Path(args.input).resolve():
-            raise ValueError("--save-model is the input file; choose another name (inputs are never overwritten)")
-        if not model.resolve().parent.is_dir():
-            raise FileNotFoundError(f"--save-model folder does not exist: {model.parent}")
+    out = check_reconstruct_files(args)
     data = read_input(args.input, cameras=args.cameras)
+    check_reconstruct_files(args, data.points)
     if args.no_color:
         data = replace(data, colors=None)
     if data.normals is None and data.cameras is None:
@@ -258,7 +251,8 @@ def summary(result, points, input_path, output_path, model_path=None, seconds=No
     colored = result.mesh.has_vertex_colors()
     lines = [
         f"o3drbf reconstruct: {input_path} -> {output_path}",
-        f"  points           {s.points:,}" + ("  (normals estimated)" if s.normals_estimated else ""),
+        f"  points           {s.points:,}" + ("  (normals estimated)" if s.normals_estimated else "")
+        + (f", {s.duplicates_merged:,} repeated points merged" if s.duplicates_merged else ""),
         f"  outliers         {s.outliers_removed:,} removed ({s.outlier_method}: {s.outlier_reason})",
         f"  constraints      {s.surface_constraints:,} surface, {s.exterior_constraints:,} exterior, {s.sphere_constraints:,} sphere",
         f"  mean spacing     {s.mean_spacing:.4g} (data units), {s.mean_spacing_box:.4f} in the 2x2x2 box",

@@ -397,7 +397,7 @@ def add_photos_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPa
     parser.add_argument("images", help="folder of the calibrated photographs")
     parser.add_argument("--calibration", metavar="FILE", default=None,
                         help="camera file or folder: Middlebury *_par.txt, Bundler bundle.out (with its list), COLMAP text model (default: found in the image folder)")
-    parser.add_argument("-o", "--output", required=True, help="output mesh (.ply, .obj, .off, .gltf, .glb; PLY keeps the vertex colours)")
+    parser.add_argument("-o", "--output", required=True, help="output mesh (.ply, .obj, .off, .gltf; PLY keeps the vertex colours)")
     g = parser.add_argument_group("carving")
     g.add_argument("--bounds", type=_bounds_arg, default="auto",
                    help="carving box 'xmin ymin zmin xmax ymax zmax', 'silhouettes' (the box of the region inside every silhouette) "
