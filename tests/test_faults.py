@@ -252,7 +252,7 @@ MODEL_CASES = {
     "wrong format": (lambda t: _model(t, header=_header(format="other")), "header.format"),
     "newer version": (lambda t: _model(t, header=_header(version=99)), "newer o3drbf"),
     "bad version": (lambda t: _model(t, header=_header(version="1")), "header.version"),
-    "unknown kernel": (lambda t: _model(t, header=_header(kernel={"name": "spline"})), "header.kernel.*unknown basis"),
+    "unknown kernel": (lambda t: _model(t, header=_header(kernel={"name": "spline"})), "header.kernel.*unknown kernel"),
     "negative delta": (lambda t: _model(t, header=_header(kernel={"name": "multiorder", "delta": -1.0, "tau": 0.01})), "header.kernel"),
     "kernel param string": (lambda t: _model(t, header=_header(kernel={"name": "gaussian", "sigma": "big"})), "header.kernel.sigma"),
     "metadata not object": (lambda t: _model(t, header=_header(metadata=[1])), "header.metadata"),

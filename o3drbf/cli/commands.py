@@ -298,23 +298,11 @@ def _main(argv: list[str] | None) -> int:
         format="o3drbf: %(message)s",
         stream=sys.stderr,
     )
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
     try:
-        if args.command == "reconstruct":
-            return _reconstruct(args)
-        if args.command == "compare":
-            from o3drbf.evaluation.compare import main_compare
-
-            return main_compare(args)
-        if args.command == "photos":
-            from o3drbf.photo.pipeline import main_photos
-
-            return main_photos(args)
-        if args.command == "view":
-            try:
-                from o3drbf.viewers.app import main_view
-            except ImportError as exc:
-                raise ImportError(f"o3drbf view needs the viewers package and PyVista ({exc}); pip install 'o3drbf[view]'") from None
-            return main_view(args)
+        with logging_redirect_tqdm():  # log lines never break into a progress bar
+            return _dispatch(parser, args)
     except MemoryError as exc:
         print(f"o3drbf: error: {_memory_message(exc)}", file=sys.stderr)
         return 2
@@ -333,6 +321,26 @@ def _main(argv: list[str] | None) -> int:
             file=sys.stderr,
         )
         return 1
+    return 2
+
+
+def _dispatch(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    if args.command == "reconstruct":
+        return _reconstruct(args)
+    if args.command == "compare":
+        from o3drbf.evaluation.compare import main_compare
+
+        return main_compare(args)
+    if args.command == "photos":
+        from o3drbf.photo.pipeline import main_photos
+
+        return main_photos(args)
+    if args.command == "view":
+        try:
+            from o3drbf.viewers.app import main_view
+        except ImportError as exc:
+            raise ImportError(f"o3drbf view needs the viewers package and PyVista ({exc}); pip install 'o3drbf[view]'") from None
+        return main_view(args)
     parser.error(f"unknown command {args.command!r}")
     return 2
 
