@@ -8,7 +8,60 @@ import numpy as np
 
 from o3drbf.validation import as_points
 
-__all__ = ["Normalization"]
+__all__ = ["Normalization", "check_spans_volume", "extent_ratios", "MIN_EXTENT_RATIO"]
+
+#: Smallest ratio of the thinnest to the widest principal extent of a cloud
+#: that :func:`check_spans_volume` accepts.
+MIN_EXTENT_RATIO = 1e-3
+
+
+def extent_ratios(points) -> np.ndarray:
+    """Principal extents of the points over the largest: ``(3,)``, descending, first 1.
+
+    The extents are the standard deviations along the principal axes
+    (singular values of the centred points).
+    """
+    pts = as_points(points, min_count=2)
+    sv = np.linalg.svd(pts - pts.mean(axis=0), compute_uv=False)
+    if sv[0] <= 0:
+        raise ValueError("points all coincide: their bounding box has zero size, nothing to reconstruct")
+    return sv / sv[0]
+
+
+def check_spans_volume(points, min_ratio: float = MIN_EXTENT_RATIO) -> np.ndarray:
+    """Refuse colinear, flat or extremely anisotropic clouds: they enclose no volume.
+
+    Parameters
+    ----------
+    points : (N, 3) array_like
+    min_ratio : float
+        Smallest accepted ratio of the thinnest to the widest principal
+        extent, in (0, 1).
+
+    Returns
+    -------
+    (3,) array
+        The extent ratios (:func:`extent_ratios`), when the check passes.
+
+    Raises
+    ------
+    ValueError
+        "points span no volume (they lie on a plane/line: extent ratio ...)".
+    """
+    ratios = extent_ratios(points)
+    try:
+        min_ratio = float(min_ratio)
+    except (TypeError, ValueError):
+        raise ValueError(f"min_ratio must be a number in (0, 1), got {min_ratio!r}") from None
+    if not 0 < min_ratio < 1:
+        raise ValueError(f"min_ratio must be in (0, 1), got {min_ratio!r}")
+    if ratios[2] < min_ratio:
+        what = "a line" if ratios[1] < min_ratio else "a plane"
+        raise ValueError(
+            f"points span no volume (they lie on {what}: extent ratio {ratios[2]:.2g} < {min_ratio:g}, "
+            f"principal extents 1 : {ratios[1]:.2g} : {ratios[2]:.2g}); give normals for an open patch, or more views"
+        )
+    return ratios
 
 
 @dataclass(frozen=True)

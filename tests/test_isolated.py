@@ -1,0 +1,87 @@
+"""Isolated-point rule without cameras, and the degenerate-input check."""
+
+import numpy as np
+import pytest
+
+from o3drbf.prep.outliers import isolated_points
+from o3drbf.synthetic.shapes import Cube, Sphere, TorusStack
+
+
+def stacked_tori(n_each, noise=0.0, frac=0.02, seed=0):
+    """Three tori sampled separately (genuine rows first) plus uniform outliers in the padded box."""
+    parts = [t.sample(n_each, noise=noise, seed=seed + i)[0] for i, t in enumerate(TorusStack().tori)]
+    genuine = np.vstack(parts)
+    lo, hi = genuine.min(axis=0), genuine.max(axis=0)
+    pad = 0.1 * (hi - lo)
+    k = int(round(frac / (1 - frac) * len(genuine)))
+    out = np.random.default_rng(seed + 9).uniform(lo - pad, hi + pad, (k, 3))
+    return np.vstack([genuine, out]), len(genuine)
+
+
+def test_stacked_tori_with_uniform_outliers():
+    pts, ng = stacked_tori(8000)
+    mask = isolated_points(pts)
+    assert 1 - mask[:ng].mean() >= 0.995  # every torus kept
+    for i in range(3):  # each torus separately
+        assert mask[i * 8000 : (i + 1) * 8000].mean() < 0.005
+    assert mask[ng:].mean() >= 0.9
+
+
+def test_noisy_tori_catch_the_outliers_off_the_surface():
+    sigma = 0.005
+    pts, ng = stacked_tori(8000, noise=sigma, seed=3)
+    mask = isolated_points(pts)
+    assert mask[:ng].mean() < 0.005
+    dist = np.abs(TorusStack().signed_distance(pts[ng:]))
+    far = dist > 0.03  # beyond 6 sigma (about 2.5 spacings): unmistakable outliers
+    assert mask[ng:][far].mean() >= 0.95
+
+
+def test_separate_small_object_and_edges_are_kept():
+    big, _ = Sphere(1.0).sample(6000, seed=1)
+    small, _ = Sphere(0.1, center=(3.0, 0.0, 0.0)).sample(150, seed=2)  # far away, 40x fewer points
+    cube, _ = Cube(0.5).sample(8000, noise=0.002, seed=3)  # sharp edges and corners
+    pts = np.vstack([big, small, cube + (0.0, 4.0, 0.0)])
+    mask = isolated_points(pts)
+    assert not mask[6000:6150].any()
+    assert mask.mean() < 0.001
+    # A point hovering off the big sphere's surface (2 spacings out) is caught by the off-surface rule.
+    probe = np.array([[0.0, 0.0, 1.05]])
+    assert isolated_points(np.vstack([big, probe]))[-1]
+
+
+def test_isolated_points_input():
+    pts = np.random.default_rng(0).normal(size=(50, 3))
+    with pytest.raises(ValueError, match="k must be"):
+        isolated_points(pts, k=2)
+    with pytest.raises(ValueError, match="duplicates"):
+        isolated_points(np.zeros((20, 3)))
+    assert not isolated_points(pts, spacing=10.0).any()  # thresholds above every distance
+
+
+def test_check_spans_volume():
+    from o3drbf.prep.normalize import check_spans_volume, extent_ratios
+
+    rng = np.random.default_rng(0)
+    sphere, _ = Sphere(1.0).sample(500)
+    np.testing.assert_allclose(check_spans_volume(sphere), 1.0, atol=0.15)
+    # A box 4 x 2 x 1 (uniform inside): extents proportional to the sides (truth: 4 : 2 : 1).
+    box = rng.uniform(-0.5, 0.5, (20000, 3)) * [4.0, 2.0, 1.0]
+    np.testing.assert_allclose(extent_ratios(box), [1.0, 0.5, 0.25], atol=0.01)
+    rot, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    flat = np.hstack([rng.uniform(-1, 1, (300, 2)), np.zeros((300, 1))]) @ rot.T + 5.0
+    with pytest.raises(ValueError, match="points span no volume \\(they lie on a plane"):
+        check_spans_volume(flat)
+    with pytest.raises(ValueError, match="give normals for an open patch, or more views"):
+        check_spans_volume(flat + rng.normal(0, 1e-5, flat.shape))  # a scan of a wall
+    line = np.outer(np.linspace(0, 1, 50), [1.0, 2.0, 3.0])
+    with pytest.raises(ValueError, match="they lie on a line"):
+        check_spans_volume(line)
+    needle = rng.uniform(-0.5, 0.5, (2000, 3)) * [1.0, 1e-4, 1e-4]
+    with pytest.raises(ValueError, match="line"):
+        check_spans_volume(needle)
+    assert check_spans_volume(needle, min_ratio=1e-5)[2] < 1e-3
+    with pytest.raises(ValueError, match="coincide"):
+        check_spans_volume(np.ones((5, 3)))
+    with pytest.raises(ValueError, match="min_ratio"):
+        check_spans_volume(sphere, min_ratio=2.0)
