@@ -95,7 +95,8 @@ def run_tasks(client, func, count: int, shared: dict, progress: bool = False, de
             return results
         from distributed import as_completed
 
-        remote = {k: client.scatter(v, broadcast=True) for k, v in shared.items()}
+        # hash=False: a fresh key per call (a re-scattered equal object could hit a key being released).
+        remote = {k: client.scatter(v, broadcast=True, hash=False) for k, v in shared.items()}
         futures = [client.submit(func, i, pure=False, key=f"{desc}-{i}-{id(remote)}", **remote) for i in range(count)]
         index = {f.key: i for i, f in enumerate(futures)}
         for fut in as_completed(futures):

@@ -174,6 +174,16 @@ def fine_task(t: int, surface=None, lattice=None, coarse_values=None, band=None,
     node[rows, axis] = np.floor(verts[rows, axis]).astype(np.int64)
     ny, nz = int(shape[1]), int(shape[2])
     ids = ((node[:, 0] * ny + node[:, 1]) * nz + node[:, 2]) * 3 + axis
+    # Positions from the (tile-independent) node values in float64: skimage's
+    # float32 positions depend on the block's origin, these do not.
+    local = node - start
+    step = np.zeros_like(local)
+    step[rows, axis] = 1
+    a = vals[local[:, 0], local[:, 1], local[:, 2]]
+    b = vals[local[:, 0] + step[:, 0], local[:, 1] + step[:, 1], local[:, 2] + step[:, 2]]
+    if not ((a < 0) != (b < 0)).all():
+        raise RuntimeError("tiled extraction: a marching-cubes vertex is not on a sign-changing lattice edge (a bug)")
+    verts = node + (a / (a - b))[:, None] * step
     box_verts = lattice["origin"] + verts * lattice["h"]
     _, g = surface.evaluate_box(box_verts, gradient=True, approximate=True)
     glen = np.linalg.norm(g, axis=1, keepdims=True)
