@@ -201,3 +201,20 @@ def test_cluster_result_equals_single_process_result(long_torus, long_cluster):
     m2 = extract_tiled(ref, resolution=96, client="synchronous")
     assert np.array_equal(np.asarray(m2.vertices), np.asarray(mesh.vertices))
     assert np.array_equal(np.asarray(m2.triangles), np.asarray(mesh.triangles))
+
+
+def test_command_line_helpers():
+    import argparse
+
+    from o3drbf.tiles.run import reconstruct_tiled, tiles_argument
+
+    assert tiles_argument("auto") == "auto" and tiles_argument("3") == 3
+    for bad in ("0", "x"):
+        with pytest.raises(argparse.ArgumentTypeError, match="--tiles"):
+            tiles_argument(bad)
+    pts, nrm = SMALL.sample(800, seed=9)
+    surf, mesh, stats = reconstruct_tiled(pts, nrm, tiles=2, scheduler="synchronous", resolution=24,
+                                          surface_count_per_tile=200, global_count=100)
+    assert stats["tiles"] == 2 and len(surf.tiles) == 2
+    assert mesh.is_edge_manifold(allow_boundary_edges=False) and stats["triangles"] == len(mesh.triangles)
+    assert np.abs(SMALL.signed_distance(np.asarray(mesh.vertices))).max() < 0.05
