@@ -83,8 +83,14 @@ def _positions(lat, i, j, k):
     return np.column_stack([o[0] + i * h, o[1] + j * h, o[2] + k * h])
 
 
-def coarse_task(t: int, surface=None, lattice=None, level: float = 0.0):
-    """f - level at the coarse nodes of tile ``t``'s coarse cells: (lo, values) or None."""
+def coarse_task(t: int, surface=None, lattice: dict | None = None, level: float = 0.0) -> tuple[np.ndarray, np.ndarray] | None:
+    """f - level at the coarse nodes of tile ``t``'s coarse cells.
+
+    Returns
+    -------
+    (lo (3,) int array, values (a, b, c) array) or None
+        The first coarse node index and the values; None if the tile owns no cell.
+    """
     lo, hi = lattice["own_lo"][t], lattice["own_hi"][t]
     if (hi <= lo).any():
         return None
@@ -94,7 +100,8 @@ def coarse_task(t: int, surface=None, lattice=None, level: float = 0.0):
     return lo, vals.reshape(tuple(hi - lo + 1))
 
 
-def fine_task(t: int, surface=None, lattice=None, coarse_values=None, band=None, eps: float = 0.0, level: float = 0.0, closed: bool = True):
+def fine_task(t: int, surface=None, lattice: dict | None = None, coarse_values: np.ndarray | None = None, band: np.ndarray | None = None,
+              eps: float = 0.0, level: float = 0.0, closed: bool = True) -> dict | None:
     """Marching cubes of tile ``t``'s own fine cells (computed with a one-cell halo).
 
     Returns

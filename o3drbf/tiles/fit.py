@@ -107,7 +107,8 @@ def _solve_single_thread(kernel, c: Constraints, solver: str):
         return solve(kernel, c.points, c.values, c.smoothing, method=solver)
 
 
-def fit_tile(t: int, box=None, normals=None, base=None, partition=None, settings=None):
+def fit_tile(t: int, box: np.ndarray | None = None, normals: np.ndarray | None = None, base: ImplicitSurface | None = None,
+             partition: Partition | None = None, settings: dict | None = None) -> tuple[ImplicitSurface, dict]:
     """Fit tile ``t``'s residual g_t (a Dask task; everything in box coordinates).
 
     Parameters
