@@ -1,0 +1,119 @@
+"""Where tile tasks run: in this process, on a local Dask cluster, or on any scheduler.
+
+One rule for every tiled step: ``client`` is
+
+- ``None``: a ``LocalCluster`` (processes, ``workers`` workers of one thread)
+  when there is more than one task, else this process;
+- ``"synchronous"``: this process, one task after the other (the reference);
+- a scheduler address (``"tcp://host:8786"``): a client connected to it;
+- a ``distributed.Client``: used as given (never closed here).
+
+Results do not depend on the choice: every task is a pure function of its
+inputs and runs with one BLAS thread.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import time
+
+from o3drbf.progress import progress_bar
+from o3drbf.validation import check_number
+
+__all__ = ["tile_client", "run_tasks", "SYNCHRONOUS"]
+
+log = logging.getLogger("o3drbf")
+
+SYNCHRONOUS = "synchronous"
+
+
+@contextlib.contextmanager
+def tile_client(client=None, tasks: int = 2, workers: int = 2, memory_limit=None):
+    """Yield a ``distributed.Client``, or None for in-process execution.
+
+    Parameters
+    ----------
+    client : None, "synchronous", str or distributed.Client
+        See the module notes.
+    tasks : int
+        How many tasks will run (``client=None`` with one task runs in-process).
+    workers : int
+        Workers of a LocalCluster started here (>= 1).
+    memory_limit : int or str, optional
+        Per-worker memory limit of a LocalCluster started here; default 80 %
+        of the available memory divided among the workers.
+    """
+    if client is not None and not isinstance(client, str):
+        yield client
+        return
+    if client == SYNCHRONOUS or (client is None and tasks <= 1):
+        yield None
+        return
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise RuntimeError("tiled reconstruction on Dask needs dask.distributed: pip install 'o3drbf[tiles]' (or pass client='synchronous')") from None
+    if client is None:
+        workers = check_number("workers", workers, low=1, high=1024, integer=True)
+        if memory_limit is None:
+            from o3drbf.solvers.base import available_memory
+
+            memory_limit = int(0.8 * available_memory() / workers)
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, memory_limit=memory_limit, dashboard_address=":0")
+        c = Client(cluster)
+        log.info("Dask LocalCluster: %d workers x 1 thread, %s per worker; dashboard %s", workers, _size(memory_limit), c.dashboard_link)
+        try:
+            yield c
+        finally:
+            c.close()
+            cluster.close()
+        return
+    c = Client(client)
+    log.info("Dask scheduler %s; dashboard %s", client, c.dashboard_link)
+    try:
+        yield c
+    finally:
+        c.close()
+
+
+def run_tasks(client, func, count: int, shared: dict, progress: bool = False, desc: str = "tiles") -> list:
+    """``[func(i, **shared) for i in range(count)]``, on ``client`` or in-process.
+
+    ``shared`` (the large arrays) is scattered once to every worker; one
+    future per task; results come back in task order whatever order they
+    finish in.  Logs each task's completion and shows one bar tick per task.
+    """
+    bar = progress_bar(progress, total=count, desc=desc, unit="tile")
+    t0 = time.perf_counter()
+    results = [None] * count
+    try:
+        if client is None:
+            for i in range(count):
+                results[i] = func(i, **shared)
+                _done(bar, desc, i, count, t0)
+            return results
+        from distributed import as_completed
+
+        # hash=False: a fresh key per call (a re-scattered equal object could hit a key being released).
+        remote = {k: client.scatter(v, broadcast=True, hash=False) for k, v in shared.items()}
+        futures = [client.submit(func, i, pure=False, key=f"{desc}-{i}-{id(remote)}", **remote) for i in range(count)]
+        index = {f.key: i for i, f in enumerate(futures)}
+        for fut in as_completed(futures):
+            i = index[fut.key]
+            results[i] = fut.result()
+            _done(bar, desc, i, count, t0)
+        return results
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+def _done(bar, desc, i, count, t0):
+    log.debug("%s: task %d of %d done at %.1f s", desc, i + 1, count, time.perf_counter() - t0)
+    if bar is not None:
+        bar.update(1)
+
+
+def _size(limit) -> str:
+    return f"{limit / 2**30:.1f} GiB" if isinstance(limit, (int, float)) else str(limit)

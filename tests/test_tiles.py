@@ -1,0 +1,220 @@
+"""Tiled reconstruction (o3drbf.tiles): partition of unity, tiled surface, Dask, welding."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from o3drbf.prep.sampling import mean_spacing
+from o3drbf.synthetic.shapes import Torus
+from o3drbf.tiles.extract import extract_tiled
+from o3drbf.tiles.fit import fit_tiled, tile_count
+from o3drbf.tiles.partition import Partition, kd_split, wendland, wendland_derivative
+from o3drbf.tiles.surface import TiledSurface
+
+distributed = pytest.importorskip("distributed")
+
+SMALL = Torus(0.7, 0.25)
+LONG = Torus(8.0, 0.6)
+
+
+@pytest.fixture(scope="module")
+def client():
+    """One real LocalCluster (2 processes x 1 thread) for the whole module."""
+    cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, memory_limit="2GiB", dashboard_address=":0")
+    c = distributed.Client(cluster)
+    yield c
+    c.close()
+    cluster.close()
+
+
+@pytest.fixture(scope="module")
+def small():
+    pts, nrm = SMALL.sample(2500, seed=1)
+    return pts, nrm
+
+
+@pytest.fixture(scope="module")
+def small_tiled(small):
+    pts, nrm = small
+    return fit_tiled(pts, nrm, tiles=4, client="synchronous", surface_count_per_tile=None, global_count=300)
+
+
+@pytest.fixture(scope="module")
+def long_torus():
+    pts, nrm = LONG.sample(6000, seed=2)
+    return pts, nrm
+
+
+LONG_OPTIONS = {"tiles": 6, "surface_count_per_tile": 900, "global_count": 600, "seed": 3}
+
+
+@pytest.fixture(scope="module")
+def long_cluster(long_torus, client):
+    pts, nrm = long_torus
+    surf = fit_tiled(pts, nrm, client=client, **LONG_OPTIONS)
+    stats = {}
+    mesh = extract_tiled(surf, resolution=96, client=client, stats=stats)
+    return surf, mesh, stats
+
+
+# -- partition ---------------------------------------------------------------------
+def test_wendland_values_and_derivative():
+    r = np.array([0.0, 0.25, 0.5, 1.0, 1.5])
+    # (1 - r)^4 (4 r + 1) by hand.
+    assert np.allclose(wendland(r), [1.0, 0.75**4 * 2.0, 0.5**4 * 3.0, 0.0, 0.0])
+    x = np.linspace(0.01, 1.2, 50)
+    fd = (wendland(x + 1e-6) - wendland(x - 1e-6)) / 2e-6
+    assert np.allclose(wendland_derivative(x), fd, atol=1e-6)
+
+
+def test_kd_split_balances_points_and_partitions_the_box():
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(7000, 3)) * [3.0, 1.0, 0.5]
+    root = np.array([pts.min(0) - 1, pts.max(0) + 1])
+    lo, hi = kd_split(pts, 7, root)
+    counts = [np.all((pts >= a) & (pts < b), axis=1).sum() for a, b in zip(lo, hi)]
+    assert sum(counts) == len(pts) and max(counts) - min(counts) <= 2
+    assert np.isclose(np.prod(hi - lo, axis=1).sum(), np.prod(root[1] - root[0]))
+    # Random points of the root box: in exactly one cell, and covered by the supports.
+    x = rng.uniform(root[0], root[1], size=(5000, 3))
+    inside = np.stack([np.all((x >= a) & (x < b), axis=1) for a, b in zip(lo, hi)], axis=1)
+    assert (inside.sum(1) == 1).all()
+    part = Partition.from_cells(lo, hi, overlap=0.25)
+    w = part.weights(x)
+    assert (w.sum(1) > 0).all()
+    assert (w[inside] > 0).all()
+    with pytest.raises(ValueError, match="overlap"):
+        Partition.from_cells(lo, hi, overlap=0.0, min_overlap=0.0)
+
+
+def test_tile_count_rule():
+    assert tile_count(1_000_000) == 17
+    assert tile_count(100, tiles="auto") == 1
+    assert tile_count(1000, tiles=3) == 3
+    with pytest.raises(ValueError, match="tiles"):
+        tile_count(1000, tiles="many")
+
+
+# -- tiled surface ---------------------------------------------------------------------
+def test_value_is_the_partition_of_unity_formula(small_tiled):
+    s = small_tiled
+    x = np.random.default_rng(1).uniform(-1.0, 1.0, size=(500, 3)) * [1.0, 1.0, 0.4]
+    xb = s.normalization.forward(x)
+    w = s.partition.weights(xb)
+    g = np.stack([t.evaluate_box(xb) for t in s.tiles], axis=1)
+    expected = s.base.evaluate_box(xb) + (w * g).sum(1) / w.sum(1)
+    assert np.allclose(s(x), expected, rtol=1e-12, atol=1e-12)
+
+
+def test_gradient_matches_finite_differences_and_f_is_continuous_at_borders(small_tiled):
+    s = small_tiled
+    pts, nrm = SMALL.sample(300, seed=4)
+    eps = 1e-6
+    fd = np.stack([(s(pts + eps * e) - s(pts - eps * e)) / (2 * eps) for e in np.eye(3)], axis=1)
+    g = s.gradient(pts)
+    assert np.abs(fd - g).max() < 1e-5 * np.abs(g).max()
+    # Across a cut between two cells (and a support's edge) f changes by O(distance).
+    cut = s.normalization.inverse(s.partition.hi[0])[0]
+    y = pts.copy()
+    y[:, 0] = cut
+    d = np.array([1e-9, 0, 0])
+    assert np.abs(s(y + d) - s(y - d)).max() < 1e-6
+
+
+def test_save_load_round_trip_and_validation(small_tiled, tmp_path):
+    s = small_tiled
+    path = s.save(tmp_path / "tiled.npz")
+    back = TiledSurface.load(path)
+    x = np.random.default_rng(2).uniform(-1, 1, size=(200, 3))
+    assert np.array_equal(back(x), s(x))
+    assert back.metadata["tile_count"] == 4
+    with np.load(path) as data:
+        arrays = dict(data)
+    arrays["weights"] = arrays["weights"][:-1]
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(ValueError, match="corrupt tiled model"):
+        TiledSurface.load(tmp_path / "bad.npz")
+    with pytest.raises(ValueError, match="must end in .npz"):
+        s.save(tmp_path / "tiled.bin")
+
+
+# -- global vs tiled ---------------------------------------------------------------------
+def test_tiled_fit_agrees_with_the_global_fit(small, small_tiled):
+    from o3drbf.extract import extract_mesh
+    from o3drbf.mesh.metrics import chamfer
+    from o3drbf.pipeline import reconstruct
+
+    pts, nrm = small
+    spacing = mean_spacing(pts)
+    glob = reconstruct(pts, nrm, surface_count=None, auto=True, resolution=48, extract=False).surface
+    s = small_tiled
+    x, xn = SMALL.sample(3000, seed=7)
+    fg, gg = glob.evaluate(x, gradient=True)
+    ft = s(x)
+    w = s.partition.weights(s.normalization.forward(x))
+    border = (w / w.sum(1, keepdims=True)).max(1) < 0.999
+    assert 200 < border.sum() < len(x) - 200
+    # |f_tiled - f_global| / |grad f_global|: distance between the zero sets, on the true surface.
+    d = np.abs(ft - fg) / np.linalg.norm(gg, axis=1)
+    for part in (~border, border):
+        assert d[part].max() < 0.25 * spacing
+        assert d[part].mean() < 0.05 * spacing
+    # Inside / outside agree with the truth on both sides of the surface.
+    for off in (0.05, -0.05):
+        assert (np.sign(s(x + off * xn)) == -np.sign(off)).all()
+    bounds = glob.metadata["bounds"]
+    mg = extract_mesh(glob, resolution=48, bounds=bounds)
+    mt = extract_tiled(s, resolution=48, bounds=bounds, client="synchronous")
+    assert chamfer(mg, mt, n_samples=20000)["l1"] < 0.05 * spacing
+
+
+# -- a long torus across tiles, on a real cluster --------------------------------------------
+def test_long_torus_is_one_closed_genus_one_piece(long_cluster):
+    surf, mesh, stats = long_cluster
+    # The torus crosses several tiles (and several cuts).
+    owners = [t["points"] for t in surf.metadata["tiles"]]
+    assert len(owners) == 6 and min(owners) > 500
+    assert mesh.is_watertight() and mesh.is_edge_manifold() and mesh.is_vertex_manifold()
+    v, f = len(mesh.vertices), np.asarray(mesh.triangles)
+    edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    e = len(np.unique(edges, axis=0))
+    assert v - e + len(f) == 0  # genus 1
+    labels, counts, _ = mesh.cluster_connected_triangles()
+    assert len(counts) == 1
+    assert len(np.unique(np.sort(f, axis=1), axis=0)) == len(f)  # no double faces
+    assert stats["vertices_before_weld"] > stats["vertices"] and stats["weld_mismatch"] == 0.0
+    # Outward faces (positive volume) and close to the true torus.
+    verts = np.asarray(mesh.vertices)
+    vol = np.einsum("ij,ij->i", verts[f[:, 0]], np.cross(verts[f[:, 1]], verts[f[:, 2]])).sum() / 6
+    assert np.isclose(vol, 2 * np.pi**2 * 8.0 * 0.6**2, rtol=0.05)
+    assert np.abs(LONG.signed_distance(verts)).max() < 0.05
+
+
+def test_cluster_result_equals_single_process_result(long_torus, long_cluster):
+    pts, nrm = long_torus
+    surf, mesh, _ = long_cluster
+    ref = fit_tiled(pts, nrm, client="synchronous", **LONG_OPTIONS)
+    assert np.array_equal(ref.base.weights, surf.base.weights)
+    for a, b in zip(ref.tiles, surf.tiles):
+        assert np.array_equal(a.weights, b.weights) and np.array_equal(a.poly, b.poly)
+    m2 = extract_tiled(ref, resolution=96, client="synchronous")
+    assert np.array_equal(np.asarray(m2.vertices), np.asarray(mesh.vertices))
+    assert np.array_equal(np.asarray(m2.triangles), np.asarray(mesh.triangles))
+
+
+def test_command_line_helpers():
+    import argparse
+
+    from o3drbf.tiles.run import reconstruct_tiled, tiles_argument
+
+    assert tiles_argument("auto") == "auto" and tiles_argument("3") == 3
+    for bad in ("0", "x"):
+        with pytest.raises(argparse.ArgumentTypeError, match="--tiles"):
+            tiles_argument(bad)
+    pts, nrm = SMALL.sample(800, seed=9)
+    surf, mesh, stats = reconstruct_tiled(pts, nrm, tiles=2, scheduler="synchronous", resolution=24,
+                                          surface_count_per_tile=200, global_count=100)
+    assert stats["tiles"] == 2 and len(surf.tiles) == 2
+    assert mesh.is_edge_manifold(allow_boundary_edges=False) and stats["triangles"] == len(mesh.triangles)
+    assert np.abs(SMALL.signed_distance(np.asarray(mesh.vertices))).max() < 0.05
