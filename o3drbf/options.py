@@ -22,6 +22,7 @@ __all__ = [
     "PAPER_VALUES",
     "VIEWER_OVERRIDES",
     "CARVE_DEFAULTS",
+    "TILE_DEFAULTS",
     "PHOTO_DEFAULTS",
     "SOLVER_METHODS",
     "Options",
@@ -87,6 +88,24 @@ CARVE_DEFAULTS = {
 #: ``o3drbf photos``: the fit of a carved shell (dense and nearly noise-free,
 #: so fixed parameters; overrides of :data:`DEFAULTS`).
 PHOTO_DEFAULTS = {"delta": 4.0, "tau": 0.01, "lambda_surface": 1e-4, "exterior_ratio": 0.5, "surface_count": 3000, "mesh_resolution": 128}
+
+#: Tiled reconstruction (:func:`o3drbf.tiles.fit.fit_tiled`): tile sizes,
+#: and the single-machine defaults for the rest (lambda_exterior relative to phi(0)).
+TILE_DEFAULTS = {
+    "points_per_tile": 60_000,
+    "surface_count_per_tile": 3000,
+    "global_count": 2000,
+    "overlap": 0.25,
+    "min_overlap": 0.05,
+    "root_pad": 0.1,
+    "delta": 10.0,
+    "tau": 0.01,
+    "lambda_surface": 1e-3,
+    "lambda_exterior": DEFAULTS["lambda_exterior"],
+    "exterior_ratio": DEFAULTS["exterior_ratio"],
+    "exterior_offset": DEFAULTS["exterior_offset"],
+    "sphere_count": DEFAULTS["sphere_count"],
+}
 
 #: The paper's fixed values, used for parameters left at None with ``auto=False``.
 PAPER_VALUES = {"delta": 10.0, "tau": 0.01, "sigma": 0.1, "lambda_surface": 1e-3}

@@ -646,7 +646,7 @@ def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = F
     surface, sol = fit(constraints, params.kernel, cset.normalization, solver=options.solver, progress=progress)
     robust = None
     if options.robust:
-        from o3drbf.solvers.robust import robust_reweight
+        from o3drbf.constraints.robust import robust_reweight
 
         # The residual scale never falls below half a constraint spacing, so
         # clean data are not reweighted (no refit when no residual reaches

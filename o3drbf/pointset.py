@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+import o3drbf.cameras.model  # noqa: F401  (registers the files camera inputs refer to, for output checks)
 from o3drbf.validation import as_points, as_vectors
 
 __all__ = ["PointSet", "read_input", "CAMERA_INPUTS"]

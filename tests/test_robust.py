@@ -1,4 +1,4 @@
-"""Iteratively reweighted robust fit (o3drbf.solvers.robust) against a known sphere."""
+"""Iteratively reweighted robust fit (o3drbf.constraints.robust) against a known sphere."""
 
 import numpy as np
 import pytest
@@ -7,7 +7,7 @@ from o3drbf.constraints.core import EXTERIOR, SPHERE, SURFACE, Constraints, boun
 from o3drbf.pipeline import fit
 from o3drbf.prep.normalize import Normalization
 from o3drbf.rbf.kernels import make_kernel
-from o3drbf.solvers.robust import geometric_residuals, huber_weights, robust_reweight, tukey_weights
+from o3drbf.constraints.robust import geometric_residuals, huber_weights, robust_reweight, tukey_weights
 from o3drbf.synthetic.shapes import Sphere
 
 R = 0.8

@@ -218,3 +218,21 @@ def test_command_line_helpers():
     assert stats["tiles"] == 2 and len(surf.tiles) == 2
     assert mesh.is_edge_manifold(allow_boundary_edges=False) and stats["triangles"] == len(mesh.triangles)
     assert np.abs(SMALL.signed_distance(np.asarray(mesh.vertices))).max() < 0.05
+
+
+def test_cli_tiles_synchronous(tmp_path):
+    import open3d as o3d
+
+    from o3drbf.cli import main
+    from o3drbf.io.files import write_points
+    from o3drbf.synthetic.shapes import Torus
+
+    p, n = Torus(0.6, 0.25).sample(4000, seed=1)
+    write_points(tmp_path / "t.ply", p, n)
+    out = tmp_path / "m.ply"
+    args = ["reconstruct", str(tmp_path / "t.ply"), "-o", str(out), "--tiles", "2", "--scheduler", "synchronous",
+            "--resolution", "32", "--surface-count", "400", "-q"]
+    assert main(args) == 0
+    mesh = o3d.io.read_triangle_mesh(str(out))
+    assert mesh.is_watertight() and mesh.euler_poincare_characteristic() == 0
+    assert main(args[:-1] + ["--kernel", "gaussian"]) == 2  # tiles need the multiorder kernel

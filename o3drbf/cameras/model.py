@@ -1161,3 +1161,13 @@ def load_range_scans(conf_path: str | os.PathLike) -> CameraSet:
     elif not path.exists():
         raise FileNotFoundError(f"scan configuration not found: {path}")
     return _load_stanford(path, read_scans=True)
+
+
+def _register_referenced_files() -> None:
+    from o3drbf.io import files
+
+    if referenced_files not in files.REFERENCED_FILES:
+        files.REFERENCED_FILES.append(referenced_files)
+
+
+_register_referenced_files()

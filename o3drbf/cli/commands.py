@@ -130,6 +130,12 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--no-color", action="store_true", help="do not colour the mesh from the input points' colours (used when the input has colours)")
     g.add_argument("-q", "--quiet", action="store_true", help="no progress bars or summary")
     g.add_argument("-v", "--verbose", action="store_true", help="log each step")
+    g = rec.add_argument_group("tiles (beyond one machine; needs pip install 'o3drbf[tiles]')")
+    g.add_argument("--tiles", type=_tiles_value, default=None, metavar="auto|N",
+                   help="tiled reconstruction over N k-d tiles blended by a partition of unity (auto: one per 60,000 points)")
+    g.add_argument("--scheduler", default=None, metavar="ADDR",
+                   help="Dask scheduler address for --tiles (default: a local cluster of --workers processes; 'synchronous': in this process)")
+    g.add_argument("--workers", type=_positive_int, default=2, help="workers of the local Dask cluster with --tiles (default %(default)s)")
 
     from o3drbf.evaluation.compare import add_compare_arguments
 
@@ -217,6 +223,8 @@ def _reconstruct(args) -> int:
         data = replace(data, colors=None)
     if data.normals is None and data.cameras is None:
         log.warning("%s has no normals: estimating and orienting them with Open3D", args.input)
+    if args.tiles is not None:
+        return _reconstruct_tiled(args, data, options, out, t0)
     result = reconstruct(data, options=options, seed=args.seed, progress=not args.quiet)
     t_write = time.perf_counter()
     io.write_mesh(out, result.mesh, inputs=[args.input])
@@ -227,6 +235,40 @@ def _reconstruct(args) -> int:
     result.report.stages.append(StageTiming("write", time.perf_counter() - t_write, peak_rss_mb()))
     if not args.quiet:
         print(summary(result, data.points, args.input, out, args.save_model, time.perf_counter() - t0))
+    return 0
+
+
+def _tiles_value(text: str):
+    from o3drbf.tiles.run import tiles_argument
+
+    return tiles_argument(text)
+
+
+def _reconstruct_tiled(args, data, options, out, t0) -> int:
+    """``--tiles``: the tiled fit and tiled marching cubes (:mod:`o3drbf.tiles`)."""
+    from o3drbf.io import files as io
+    from o3drbf.tiles.run import reconstruct_tiled
+
+    p = options.parameters
+    if data.cameras is not None or p.kernel != "multiorder":
+        raise ValueError("--tiles needs points with normals and the multiorder kernel; drop --cameras/--kernel")
+    if data.normals is None:
+        log.warning("%s has no normals: estimating and orienting them with Open3D", args.input)
+    c = options.constraints
+    surface, mesh, stats = reconstruct_tiled(
+        data.points, data.normals, tiles=args.tiles, scheduler=args.scheduler, workers=args.workers,
+        resolution=options.extract.resolution, voxel_size=options.extract.voxel_size, seed=args.seed, progress=not args.quiet,
+        auto=p.auto, delta=p.delta, tau=p.tau, lambda_surface=p.lambda_surface, lambda_exterior=p.lambda_exterior,
+        exterior_ratio=c.exterior_ratio, exterior_offset=c.exterior_offset, sphere_count=c.sphere_count, solver=options.fit.solver,
+    )
+    io.write_mesh(out, mesh, inputs=[args.input])
+    if args.save_model:
+        surface.save(args.save_model)
+    if not args.quiet:
+        print(f"o3drbf reconstruct --tiles: {args.input} -> {out}\n"
+              f"  tiles            {stats['tiles']}\n"
+              f"  mesh             {stats['triangles']:,} triangles\n"
+              f"  time             fit {stats['fit_seconds']:.1f} s, mesh {stats['extract_seconds']:.1f} s, total {time.perf_counter() - t0:.1f} s")
     return 0
 
 

@@ -252,15 +252,20 @@ def _same(a: Path, b: Path) -> bool:
     return os.path.abspath(os.path.realpath(a)) == os.path.abspath(os.path.realpath(b))
 
 
-def _referenced(inp: Path) -> list[Path]:
-    """``inp`` and the files it refers to (scans of a .conf, images of a calibration)."""
-    files = [inp]
-    try:
-        from o3drbf.cameras.model import referenced_files
+#: Readers ``f(path) -> list[Path]`` of the files an input refers to (the
+#: scans of a .conf, the images of a calibration).  :mod:`o3drbf.cameras.model`,
+#: a layer above, registers its reader here when it is imported.
+REFERENCED_FILES: list = []
 
-        files += referenced_files(inp)
-    except (ValueError, OSError):
-        pass  # an unreadable input is reported by its reader, later
+
+def _referenced(inp: Path) -> list[Path]:
+    """``inp`` and the files it refers to (see :data:`REFERENCED_FILES`)."""
+    files = [inp]
+    for reader in REFERENCED_FILES:
+        try:
+            files += reader(inp)
+        except (ValueError, OSError):
+            pass  # an unreadable input is reported by its reader, later
     return files
 
 

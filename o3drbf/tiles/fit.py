@@ -21,6 +21,7 @@ import time
 
 import numpy as np
 
+from o3drbf.options import TILE_DEFAULTS as OPTION_TILE_DEFAULTS
 from o3drbf.constraints.core import (
     EXTERIOR,
     SPHERE,
@@ -44,22 +45,8 @@ __all__ = ["fit_tiled", "tile_count", "TILE_DEFAULTS"]
 
 log = logging.getLogger("o3drbf")
 
-#: Defaults of :func:`fit_tiled` (box units where lengths).
-TILE_DEFAULTS = {
-    "points_per_tile": 60_000,
-    "surface_count_per_tile": 3000,
-    "global_count": 2000,
-    "overlap": 0.25,
-    "min_overlap": 0.05,
-    "root_pad": 0.1,
-    "delta": 10.0,
-    "tau": 0.01,
-    "lambda_surface": 1e-3,
-    "lambda_exterior": 2.0,
-    "exterior_ratio": 0.1,
-    "exterior_offset": 0.05,
-    "sphere_count": 64,
-}
+#: Defaults of :func:`fit_tiled` (the table lives in :mod:`o3drbf.options`).
+TILE_DEFAULTS = OPTION_TILE_DEFAULTS
 
 
 def tile_count(n_points: int, tiles="auto", points_per_tile: int = TILE_DEFAULTS["points_per_tile"]) -> int:
@@ -150,7 +137,7 @@ def fit_tile(t: int, box: np.ndarray | None = None, normals: np.ndarray | None =
     ext = ext[np.all(np.abs(ext - partition.centre[t]) < partition.rho[t], axis=1)]
     spacing = mean_spacing(surf) if len(surf) > 1 else float("nan")
     kernel, lam = _kernel_and_lambda(spacing, s["noise"], s["scale"], s["delta"], s["tau"], s["lambda_surface"])
-    c = Constraints.concat(Constraints.of_kind(surf, SURFACE, lam), Constraints.of_kind(ext, EXTERIOR, s["lambda_exterior"]))
+    c = Constraints.concat(Constraints.of_kind(surf, SURFACE, lam), Constraints.of_kind(ext, EXTERIOR, s["lambda_exterior"] * kernel.value_at_zero))
     residual = c.values - base.evaluate_box(c.points)
     c = Constraints(c.points, residual, c.smoothing, c.kind)
     sol = _solve_single_thread(kernel, c, s["solver"])
@@ -283,8 +270,8 @@ def fit_tiled(
     kernel0, lam0 = _kernel_and_lambda(spacing0, noise, norm.scale, delta, tau, lambda_surface)
     c0 = Constraints.concat(
         Constraints.of_kind(surf0, SURFACE, lam0),
-        Constraints.of_kind(ext0, EXTERIOR, lambda_exterior),
-        Constraints.of_kind(sph, SPHERE, lambda_exterior),
+        Constraints.of_kind(ext0, EXTERIOR, lambda_exterior * kernel0.value_at_zero),
+        Constraints.of_kind(sph, SPHERE, lambda_exterior * kernel0.value_at_zero),
     )
     sol0 = _solve_single_thread(kernel0, c0, solver)
     base = ImplicitSurface(kernel0, c0.points, sol0.weights, sol0.poly, Normalization.identity())
