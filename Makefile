@@ -5,7 +5,7 @@ OUT     ?= out
 TEMPLE  ?= ../shared/data/middlebury_templeSparseRing
 export OMP_NUM_THREADS ?= 2
 
-.PHONY: setup demo test bench bench-paper figures clean
+.PHONY: setup demo test samples bench bench-paper figures clean
 
 setup: $(SETUP)
 
@@ -14,6 +14,9 @@ $(SETUP): pyproject.toml scripts/setup.sh
 
 demo: $(SETUP)
 	$(PY) samples/demo.py --out $(OUT)
+
+samples: $(SETUP)
+	$(PY) samples/generate.py $(OUT)/samples
 
 test: $(SETUP)
 	$(PY) -m pytest -q -rs

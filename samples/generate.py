@@ -6,6 +6,15 @@ torus.ply          noisy torus (8,000 points, sigma 0.5% of the size), with norm
 tori_stack.ply     three stacked tori (the paper's 'towers', idealized), with normals
 cube_corner.ply    a range image of a cube corner (the paper's Fig. 2), with normals
 sphere.xyz         sphere points without normals (normals get estimated)
+scan.ply           three synthetic range scans of a torus (noise along the rays, 2 % outliers), no normals
+points.ply         the same points (for --cameras)
+cams.json          the three scanners' cameras
+scan.json          points and cameras in one o3drbf scan file
+reference.ply      the true torus mesh (for compare --truth)
+
+The README's command-line examples use these files:
+
+    make samples && cd out/samples && o3drbf reconstruct scan.ply --cameras cams.json -o mesh.ply
 """
 
 from __future__ import annotations
@@ -28,6 +37,12 @@ SAMPLES = {
 
 
 def generate(out: Path) -> dict[str, Path]:
+    import open3d as o3d
+
+    from o3drbf.cameras.model import save_cameras_json
+    from o3drbf.io.files import write_mesh
+    from o3drbf.synthetic.scans import range_scans, write_scan_json
+
     out.mkdir(parents=True, exist_ok=True)
     written = {}
     for name, make in SAMPLES.items():
@@ -35,6 +50,14 @@ def generate(out: Path) -> dict[str, Path]:
         path = out / name
         write_points(path, pts, None if name.endswith(".xyz") else nrm)
         written[name] = path
+    torus = o3d.geometry.TriangleMesh.create_torus(0.6, 0.25, 60, 30)
+    torus.compute_vertex_normals()
+    pts, owner, cams = range_scans(torus, n_views=3, elevation=20.0, width=160, height=120, noise=0.003, outliers=0.02, seed=5)
+    for name in ("scan.ply", "points.ply"):
+        written[name] = write_points(out / name, pts)
+    written["cams.json"] = save_cameras_json(out / "cams.json", cams)
+    written["scan.json"] = write_scan_json(out / "scan.json", pts, cams, owner)
+    written["reference.ply"] = write_mesh(out / "reference.ply", torus)
     return written
 
 
