@@ -217,6 +217,21 @@ def test_soup_of_very_unequal_triangles():
     check_same(mesh)
 
 
+def test_mostly_collapsed_triangles():
+    """More than half the triangles collapsed to points (on the surfaces and
+    off them): still Open3D's answer."""
+    sphere = o3d.geometry.TriangleMesh.create_sphere(1.0, 12)
+    sphere += o3d.geometry.TriangleMesh.create_sphere(1.0, 12).translate((0.5, 0.0, 0.0))
+    v = np.asarray(sphere.vertices)
+    rng = np.random.default_rng(11)
+    n = 2 * len(sphere.triangles)
+    spots = np.concatenate([v[rng.integers(0, len(v), n // 2)], rng.uniform(-1, 1, (n - n // 2, 3))])
+    points = np.repeat(spots, 3, axis=0)
+    tris = np.concatenate([np.asarray(sphere.triangles), len(v) + np.arange(3 * n).reshape(n, 3)])
+    assert check_same(sphere) > 0
+    assert check_same(mesh_from(np.concatenate([v, points]), tris)) > 0
+
+
 # --------------------------------------------------------------------------
 # watertight, the report hook, and input checks
 

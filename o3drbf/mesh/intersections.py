@@ -432,13 +432,14 @@ def self_intersecting_pairs(vertices: Any, triangles: Any) -> np.ndarray:
     Notes
     -----
     See the module docstring for the definition.  Candidates come from a
-    uniform grid whose cell is 1.5 times the median bounding-box extent of
-    the triangles; a pair is tested only in the cell holding the lower corner
-    of the intersection of the two boxes, so it is tested once.  Triangles
+    uniform grid whose cell is 1.5 times the median bounding-box size of the
+    triangles (longest side, over triangles not collapsed to a point); a
+    pair is tested only in the cell holding the lower corner of the
+    intersection of the two boxes, so it is tested once.  Triangles
     covering more than 64 cells are tested against all triangles.  Time is
     about linear in ``F`` for meshes of roughly uniform triangles (a
-    marching-cubes mesh), quadratic in the worst case (many large
-    overlapping triangles).
+    marching-cubes mesh: about 2 s for 460k triangles on one loaded core),
+    quadratic in the worst case (many large overlapping triangles).
     """
     verts, tris = _check_arrays(vertices, triangles)
     if tris.shape[0] < 2:
@@ -449,7 +450,8 @@ def self_intersecting_pairs(vertices: Any, triangles: Any) -> np.ndarray:
     origin = bmin.min(axis=0)
     span = float((bmax.max(axis=0) - origin).max())
     extent = (bmax - bmin).max(axis=1)
-    cell = 1.5 * float(np.median(extent))
+    extent = extent[extent > 0]  # triangles collapsed to a point say nothing of the size
+    cell = 1.5 * float(np.median(extent)) if extent.size else span
     cell = max(cell, span / (_MAX_DIM - 2), np.finfo(float).tiny)
     lo = np.floor((bmin - origin) / cell).astype(np.int64)
     hi = np.floor((bmax - origin) / cell).astype(np.int64)
