@@ -89,6 +89,23 @@ def test_two_triangles_as_open3d(q, shared, expected):
     assert check_same(mesh) == expected
 
 
+def test_near_corner_pair_of_a_real_mesh():
+    """Two triangles of o3drbf's bunny (resolution 96) that meet near a grid
+    corner: no edge crosses the other triangle in exact arithmetic, yet
+    Open3D reports the pair (Moller's EPSILON snaps tiny plane distances to
+    zero).  Matching Open3D means reporting it too."""
+    p = [[0.011811014881740155, 0.12208731897486658, 0.034041131723073256],
+         [0.01360223973548045, 0.12122314267384193, 0.034041131723073256],
+         [0.013604263960794536, 0.12122314267384193, 0.034040245541484146]]  # fmt: skip
+    q = [[0.013604263960794536, 0.12122208858416225, 0.034041131723073256],
+         [0.015397513039848924, 0.120323826940752, 0.034041131723073256],
+         [0.015397513039848924, 0.12122314267384193, 0.0332102945062539]]  # fmt: skip
+    mesh = mesh_from(p + q, [[0, 1, 2], [3, 4, 5]])
+    assert check_same(mesh) == 1
+
+
+
+
 # --------------------------------------------------------------------------
 # many meshes against Open3D
 
