@@ -55,15 +55,6 @@ _MAX_DIM = 1 << 20
 
 
 @njit(cache=True)
-def _pick(x, y, z, i):
-    if i == 0:
-        return x
-    if i == 1:
-        return y
-    return z
-
-
-@njit(cache=True)
 def _edge_edge(ax, ay, v0x, v0y, u0x, u0y, u1x, u1y):
     """EDGE_EDGE_TEST: 1 if edge (V0, V0 + A) crosses edge (U0, U1) in 2-D."""
     bx = u0x - u1x
