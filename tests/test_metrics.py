@@ -306,7 +306,7 @@ def test_report_of_a_sphere():
     assert rep["watertight"] and rep["closed"] and rep["edge_manifold"] and rep["vertex_manifold"]
     assert (rep["euler_characteristic"], rep["genus"], rep["components"]) == (2, 0, 1)
     assert rep["vertices"] == len(sphere(R).vertices) and rep["triangles"] == len(sphere(R).triangles)
-    assert rep["self_intersections"] is None
+    assert rep["self_intersections"] == 0
     # Inscribed polyhedron: a little under the sphere.  Measured -0.07 % / -0.14 %.
     assert rep["area"] == pytest.approx(4 * math.pi * R**2, rel=3e-3)
     assert rep["volume"] == pytest.approx(4 / 3 * math.pi * R**3, rel=3e-3)
@@ -349,15 +349,17 @@ def test_report_flags_a_missing_triangle():
     assert rep["genus"] is None and rep["volume"] is None
 
 
-def test_report_counts_self_intersections_on_request():
+def test_report_counts_self_intersections_by_default():
     box = o3d.geometry.TriangleMesh.create_box(1.0, 1.0, 1.0)
     overlapping = box + o3d.geometry.TriangleMesh.create_box(1.0, 1.0, 1.0).translate((0.5, 0.5, 0.5))
     disjoint = box + o3d.geometry.TriangleMesh.create_box(1.0, 1.0, 1.0).translate((3.0, 0.0, 0.0))
-    assert mesh_report(overlapping)["watertight"]  # topologically closed ...
-    rep = mesh_report(overlapping, self_intersections=True)
-    assert rep["self_intersections"] > 0 and not rep["watertight"]  # ... but not when asked
-    rep = mesh_report(disjoint, self_intersections=True)
-    assert rep["self_intersections"] == 0 and rep["watertight"]
+    rep = mesh_report(overlapping, self_intersections=False)
+    assert rep["watertight"] and rep["self_intersections"] is None  # topologically closed ...
+    rep = mesh_report(overlapping)
+    assert rep["self_intersections"] == len(overlapping.get_self_intersecting_triangles()) > 0
+    assert not rep["watertight"] and not overlapping.is_watertight()  # ... but not watertight
+    rep = mesh_report(disjoint)
+    assert rep["self_intersections"] == 0 and rep["watertight"] and disjoint.is_watertight()
     assert rep["components"] == 2 and rep["volume"] == pytest.approx(2.0)
 
 

@@ -309,7 +309,8 @@ def summary(result, points, input_path, output_path, model_path=None, seconds=No
                      f"{r.get('dropped', 0):,} dropped (residual scale {r.get('scale', float('nan')):.2g} box units)")
     lines += [
         f"  mesh             {s.triangles:,} triangles, {s.vertices:,} vertices, extracted in {s.extract_seconds:.2f} s",
-        f"  watertight       {'yes' if rep['watertight'] else 'NO'} ({rep.get('watertight_definition', 'closed, edge-manifold')}), "
+        f"  watertight       {'yes' if rep['watertight'] else 'NO'} (Open3D's is_watertight: closed, manifold, "
+        f"{rep['self_intersections'] or 'no'} self-intersecting triangle pair(s)), "
         f"Euler characteristic {rep['euler_characteristic']}, {rep['components']} component(s)",
         f"  fitness error    mean {fit['mean']:.3g}, RMS {fit['rms']:.3g}, max {fit['max']:.3g} (data units; mean {fit['mean'] * scale:.2e} in the box)",
     ]

@@ -482,8 +482,8 @@ def compare(points, normals=None, cameras=None, truth=None, methods=METHODS, see
     list of dict
         One row per method with the keys :data:`COLUMNS` (``None`` where a
         value does not apply or the method failed; ``error`` says why).
-        Watertight is :func:`o3drbf.mesh.metrics.mesh_report`'s (closed and
-        vertex-manifold, self-intersections not tested).
+        Watertight is :func:`o3drbf.mesh.metrics.mesh_report`'s (equal to
+        Open3D's is_watertight(): closed, vertex-manifold, no self-intersections).
 
     Raises
     ------
