@@ -71,11 +71,14 @@ def grid_for(bounds, resolution: int | None = 128, voxel_size: float | None = No
 def mesh_evaluator(surface, eps: float = MESH_EPS, min_centres: int = GRID_EVALUATION_MIN):
     """The fastest adequate ``(box points (M, 3), gradient) -> f [, grad f]`` for meshing.
 
-    The surface's own evaluator when it has one; else, for the multi-order
-    kernel with at least ``min_centres`` centres, one grid sum
-    (:class:`o3drbf.solvers.fast.GridSum` at relative tolerance ``eps``,
-    gradients from the same grid: ~10 ``eps``); else the direct sum from
-    cubic tables (:meth:`ImplicitSurface.evaluate_box` with ``approximate``).
+    One grid sum (:class:`o3drbf.solvers.fast.GridSum`) for values and
+    normals (gradients from the same grid: ~10 times its tolerance, plenty
+    for normals): the surface's own (from
+    :func:`o3drbf.solvers.fast.make_evaluator`), else, for the multi-order
+    kernel with at least ``min_centres`` centres, a new one at relative
+    tolerance ``eps``.  Otherwise the surface's own evaluator, or the direct
+    sum from cubic tables (:meth:`ImplicitSurface.evaluate_box` with
+    ``approximate``).
 
     Parameters
     ----------
@@ -89,27 +92,34 @@ def mesh_evaluator(surface, eps: float = MESH_EPS, min_centres: int = GRID_EVALU
     -------
     callable
         ``func(points, gradient=False)``; ``func.kind`` is "surface",
-        "grid" or "table".
+        "grid" or "table"; ``func.cover(lo, hi)`` prepares it for targets in
+        that box (see :meth:`o3drbf.solvers.fast.GridSum.cover`).
     """
 
     def table(pts, gradient=False):
         return surface.evaluate_box(pts, gradient=gradient, approximate=True)
 
-    own = getattr(surface, "evaluator", None) is not None
-    table.kind = "surface" if own else "table"
+    own = getattr(surface, "evaluator", None)
+    table.kind = "surface" if own is not None else "table"
+    table.cover = getattr(own, "cover", None) or (lambda lo, hi: False)
     kernel = getattr(surface, "kernel", None)
-    if own or kernel is None or len(surface.centres) < min_centres:
-        return table
-    from o3drbf.rbf.kernels import MultiOrder
-    from o3drbf.rbf.sums import polynomial_basis
     from o3drbf.solvers import fast
 
-    if not (fast.HAVE_GRID and isinstance(kernel, MultiOrder) and kernel.coefficients is not None):
+    op = getattr(own, "fast_sum", None)
+    if own is not None and not (isinstance(op, fast.GridSum) and op.n == len(surface.centres)):
         return table
-    try:
-        op = fast.GridSum(kernel, surface.centres, eps=eps)
-    except (MemoryError, ValueError):
-        return table
+    if op is None:  # no evaluator of its own
+        from o3drbf.rbf.kernels import MultiOrder
+
+        if kernel is None or len(surface.centres) < min_centres or not (
+                fast.HAVE_GRID and isinstance(kernel, MultiOrder) and kernel.coefficients is not None):
+            return table
+        try:
+            op = fast.GridSum(kernel, surface.centres, eps=eps)
+        except (MemoryError, ValueError):
+            return table
+    from o3drbf.rbf.sums import polynomial_basis
+
     weights = surface.weights
     degree = kernel.polynomial_degree
 
@@ -125,6 +135,7 @@ def mesh_evaluator(surface, eps: float = MESH_EPS, min_centres: int = GRID_EVALU
 
     grid.kind = "grid"
     grid.operator = op
+    grid.cover = op.cover
     return grid
 
 
@@ -330,6 +341,9 @@ def extract_mesh(
     origin, h, shape = grid_for(box, resolution_, h_box, multiple=8 if band else 1)
 
     func = mesh_evaluator(surface) if evaluator is None else evaluator
+    cover = getattr(func, "cover", None)
+    if cover is not None:  # one evaluation grid for the whole lattice
+        cover(origin, origin + (np.array(shape) - 1) * h)
     vals, _ = evaluate_grid(func, origin, h, shape, level=level, band=band, progress=progress)
     vals = _keep_off_corners(vals - level)
     if closed:

@@ -95,3 +95,24 @@ def test_grid_chosen_under_budget_with_the_exterior_sphere(delta, tau):
     rv, rg = kernel_sum(kernel, c, w, t, gradient=True)
     assert np.linalg.norm(vals - rv) / np.linalg.norm(rv) < 1e-7
     assert np.linalg.norm(grads - rg) / np.linalg.norm(rg) < 1e-5
+
+
+def test_cover_builds_one_evaluation_grid_for_a_box():
+    """After cover(lo, hi), targets anywhere in the box use one grid (no per-call enlargement)
+    and the values stay right; cover is a no-op when the centres' grid already covers the box."""
+    kernel = MultiOrder(10.0, 0.005)
+    c, _, _ = user_problem(3000, kernel)
+    op = fast.GridSum(kernel, c, eps=1e-6)
+    assert op.cover(c[:-64].min(axis=0), c[:-64].max(axis=0)) and op._eval_mesh is None
+    lo, hi = np.array([-1.4, -1.4, -0.8]), np.array([1.4, 1.4, 0.8])
+    assert op.cover(lo, hi) and op._eval_mesh is not None
+    w = np.random.default_rng(9).normal(size=len(c))
+    rng = np.random.default_rng(10)
+    built, make = [], op._mesh
+    op._mesh = lambda a, b: built.append(1) or make(a, b)
+    for _ in range(3):
+        t = lo + (hi - lo) * rng.uniform(size=(3000, 3))
+        ref = kernel_sum(kernel, c, w, t)
+        assert np.linalg.norm(op.evaluate(w, t) - ref) / np.linalg.norm(ref) < 1e-6
+    assert not built and op._ucache[0] is op._eval_mesh  # one grid, one potential for all calls
+    assert not op.cover(lo, hi + 1e3)  # over budget: refused, nothing changes

@@ -859,6 +859,8 @@ class GridSum:
         self._set_core(outside)
         lo, hi = self._cc.min(axis=0), self._cc.max(axis=0)
         need = _Mesh.nbytes(lo, hi, h, half)
+        self.budget = int(budget)
+        self._eval_mesh = None
         if need > budget:
             raise MemoryError(f"the grid backend needs ~{need / 2**30:.1f} GB of FFT arrays (budget "
                               f"{budget / 2**30:.1f} GB); use backend='fmm' or more neighbours")
@@ -989,11 +991,12 @@ class GridSum:
         w = w if isinstance(w, np.ndarray) and w.dtype == float else np.asarray(w, dtype=float)
         if len(t) == 0:
             return (np.zeros(0), np.zeros((0, 3))) if gradient else np.zeros(0)
-        inside = self.mesh.inside(t)
+        base = self.mesh if self._eval_mesh is None else self._eval_mesh
+        inside = base.inside(t)
         if inside.all():
-            mesh, far = self.mesh, None
+            mesh, far = base, None
         elif (~inside).sum() * self.n <= DIRECT_PAIRS:
-            mesh, far = self.mesh, np.nonzero(~inside)[0]
+            mesh, far = base, np.nonzero(~inside)[0]
         else:
             mesh, far = self._mesh(np.minimum(self._cc.min(0), t.min(0)), np.maximum(self._cc.max(0), t.max(0))), None
         if far is not None:
@@ -1013,6 +1016,29 @@ class GridSum:
             v_out[far] = exact
             return v_out
         return self._evaluate_on(mesh, w, t, gradient)
+
+    def cover(self, lo, hi) -> bool:
+        """Build (once) the grid :meth:`evaluate` uses so that it covers the box ``[lo, hi]``.
+
+        Without it, targets beyond the centres' grid enlarge it call by call
+        (a new kernel transform and potential each time); with it, one grid
+        and one potential serve a whole extraction.  Returns False (and
+        changes nothing) when that grid would exceed the budget.
+
+        Parameters
+        ----------
+        lo, hi : (3,) array_like
+            Corners of the box, in the centres' coordinates.
+        """
+        lo = np.minimum(self._cc.min(axis=0), np.asarray(lo, dtype=float))
+        hi = np.maximum(self._cc.max(axis=0), np.asarray(hi, dtype=float))
+        if self.mesh.covers(np.array([lo, hi])):
+            self._eval_mesh = None
+            return True
+        if _Mesh.nbytes(lo, hi, self.h, self.half) > self.budget:
+            return False
+        self._eval_mesh = self._mesh(lo, hi)
+        return True
 
     def _evaluate_on(self, mesh, w, t, gradient):
         """The grid + near sum from the core centres at targets inside ``mesh``, plus the far centres directly."""
@@ -1598,7 +1624,8 @@ def make_evaluator(kernel: Kernel, centres, weights, eps: float = DEFAULT_EPS, c
     polynomial, by FMM with targets (multi-order), sparse sums (Gaussian) or
     direct sums (thin-plate); ``backend`` as in :func:`fast_operator` (the
     grid for the multi-order kernel by default).  Targets are processed
-    ``chunk`` at a time."""
+    ``chunk`` at a time.  ``evaluator.cover(lo, hi)`` prepares the grid for
+    targets in that box (:meth:`GridSum.cover`; a no-op for other backends)."""
     fast = fast_operator(kernel, centres, eps=eps, backend=backend)
     if isinstance(fast, GridSum):
         # The grid's gradients are ~10x less accurate than its values: gradients
@@ -1609,12 +1636,21 @@ def make_evaluator(kernel: Kernel, centres, weights, eps: float = DEFAULT_EPS, c
             if not gradient:
                 return fast
             if "op" not in fine:
-                fine["op"] = GridSum(kernel, fast.centres, eps=eps / 10, tree=fast.tree)
+                fine["op"] = GridSum(kernel, fast.centres, eps=eps / 10, tree=fast.tree, outside=fast._out)
+                if "box" in fine:
+                    fine["op"].cover(*fine["box"])
             return fine["op"]
+
+        def cover(lo, hi):
+            fine["box"] = (lo, hi)
+            return fast.cover(lo, hi)
     else:
 
         def pick(gradient):
             return fast
+
+        def cover(lo, hi):
+            return False
     weights = np.ascontiguousarray(weights, dtype=float)
     if weights.shape != (fast.n,):
         raise ValueError(f"weights must have shape ({fast.n},), got {weights.shape}")
@@ -1630,4 +1666,5 @@ def make_evaluator(kernel: Kernel, centres, weights, eps: float = DEFAULT_EPS, c
         return np.concatenate(parts)
 
     evaluator.fast_sum = fast
+    evaluator.cover = cover
     return evaluator
