@@ -44,6 +44,16 @@ self-interaction (and any pair closer than ~1e-15), so
   exactly confluent) the fast path refuses with a message (change tau by
   ~1%, or solve densely).
 
+**Far centres.**  The grid covers the box of the centres that have a
+neighbour within the near-field radius; the few isolated centres beyond it
+(the pipeline's sphere of exterior constraints around the bounding box) are
+summed directly, both as sources and as targets (:func:`outside_centres`,
+at most ``DIRECT_PAIRS`` kernel evaluations a product).  Otherwise the
+sphere set the grid's box: at 100,000 constraints (delta 40, tau 0.005,
+eps 1e-7) 8.1 GB of FFT arrays, over ``GRID_BUDGET``, and the solve fell
+back to fmm3dpy (375-615 s); with the split, 0.41 GB and the grid.  The grid
+spacing follows the near-field radius (a neighbour count), not tau.
+
 **Gaussian.**  exp(-(r/sigma)^2) is truncated at ``r = sigma
 sqrt(ln(10/eps))`` and applied as a sparse matrix.  **Thin-plate** r^3 has
 no fast path here: products are direct (O(N^2) time, O(N) memory).
