@@ -18,7 +18,16 @@ import numpy as np
 from o3drbf.progress import progress_bar
 from o3drbf.validation import check_number
 
-__all__ = ["extract_mesh", "evaluate_grid", "grid_for"]
+__all__ = ["extract_mesh", "evaluate_grid", "grid_for", "mesh_evaluator", "GRID_EVALUATION_MIN", "MESH_EPS"]
+
+#: From this many centres on, a surface without its own evaluator is meshed with
+#: the grid (particle-mesh) sum of o3drbf.solvers.fast rather than the direct
+#: tabulated sum (3,064 centres, 300,000 targets: 1.2-1.8 s vs 10-13 s, loaded
+#: machine).
+GRID_EVALUATION_MIN = 1000
+#: Relative tolerance of the grid sums used for meshing (measured max error
+#: ~1e-7 of max |f|: far below what moves a vertex).
+MESH_EPS = 1e-6
 
 
 def grid_for(bounds, resolution: int | None = 128, voxel_size: float | None = None, multiple: int = 1):
@@ -57,6 +66,77 @@ def grid_for(bounds, resolution: int | None = 128, voxel_size: float | None = No
     centre = (b[0] + b[1]) / 2
     origin = centre - cells * h / 2
     return origin, h, tuple(int(c) + 1 for c in cells)
+
+
+def mesh_evaluator(surface, eps: float = MESH_EPS, min_centres: int = GRID_EVALUATION_MIN):
+    """The fastest adequate ``(box points (M, 3), gradient) -> f [, grad f]`` for meshing.
+
+    One grid sum (:class:`o3drbf.solvers.fast.GridSum`) for values and
+    normals (gradients from the same grid: ~10 times its tolerance, plenty
+    for normals): the surface's own (from
+    :func:`o3drbf.solvers.fast.make_evaluator`), else, for the multi-order
+    kernel with at least ``min_centres`` centres, a new one at relative
+    tolerance ``eps``.  Otherwise the surface's own evaluator, or the direct
+    sum from cubic tables (:meth:`ImplicitSurface.evaluate_box` with
+    ``approximate``).
+
+    Parameters
+    ----------
+    surface : ImplicitSurface
+    eps : float
+        Tolerance of the grid sum.
+    min_centres : int
+        Fewest centres for which the grid sum is used.
+
+    Returns
+    -------
+    callable
+        ``func(points, gradient=False)``; ``func.kind`` is "surface",
+        "grid" or "table"; ``func.cover(lo, hi)`` prepares it for targets in
+        that box (see :meth:`o3drbf.solvers.fast.GridSum.cover`).
+    """
+
+    def table(pts, gradient=False):
+        return surface.evaluate_box(pts, gradient=gradient, approximate=True)
+
+    own = getattr(surface, "evaluator", None)
+    table.kind = "surface" if own is not None else "table"
+    table.cover = getattr(own, "cover", None) or (lambda lo, hi: False)
+    kernel = getattr(surface, "kernel", None)
+    from o3drbf.solvers import fast
+
+    op = getattr(own, "fast_sum", None)
+    if own is not None and not (isinstance(op, fast.GridSum) and op.n == len(surface.centres)):
+        return table
+    if op is None:  # no evaluator of its own
+        from o3drbf.rbf.kernels import MultiOrder
+
+        if kernel is None or len(surface.centres) < min_centres or not (
+                fast.HAVE_GRID and isinstance(kernel, MultiOrder) and kernel.coefficients is not None):
+            return table
+        try:
+            op = fast.GridSum(kernel, surface.centres, eps=eps)
+        except (MemoryError, ValueError):
+            return table
+    from o3drbf.rbf.sums import polynomial_basis
+
+    weights = surface.weights
+    degree = kernel.polynomial_degree
+
+    def grid(pts, gradient=False):
+        x = np.ascontiguousarray(np.asarray(pts, dtype=float).reshape(-1, 3))
+        poly = polynomial_basis(x, degree) @ surface.poly
+        if not gradient:
+            return op.evaluate(weights, x) + poly
+        vals, grads = op.evaluate(weights, x, gradient=True)
+        if degree >= 1:
+            grads = grads + surface.poly[1:4]
+        return vals + poly, grads
+
+    grid.kind = "grid"
+    grid.operator = op
+    grid.cover = op.cover
+    return grid
 
 
 def _grid_points(origin, h, index_arrays):
@@ -197,6 +277,7 @@ def extract_mesh(
     band: bool = True,
     normals: str = "exact",
     progress: bool = False,
+    evaluator=None,
 ):
     """Triangle mesh of the iso-surface f = ``level`` by marching cubes.
 
@@ -220,6 +301,12 @@ def extract_mesh(
         Evaluate f only near the surface (default) or on the whole grid.
     normals : {"exact", "grid"}
         Vertex normals from grad f (exact) or from the grid's finite differences.
+    progress : bool
+        Progress bar.
+    evaluator : callable, optional
+        ``(box points, gradient) -> f [, grad f]``; default
+        :func:`mesh_evaluator` (the grid sum from ``GRID_EVALUATION_MIN``
+        centres on, else the direct tabulated sum).
 
     Returns
     -------
@@ -253,9 +340,10 @@ def extract_mesh(
     # Round cell counts to a multiple of 8 so the narrow band has coarse levels.
     origin, h, shape = grid_for(box, resolution_, h_box, multiple=8 if band else 1)
 
-    def func(pts):
-        return surface.evaluate_box(pts, approximate=True)
-
+    func = mesh_evaluator(surface) if evaluator is None else evaluator
+    cover = getattr(func, "cover", None)
+    if cover is not None:  # one evaluation grid for the whole lattice
+        cover(origin, origin + (np.array(shape) - 1) * h)
     vals, _ = evaluate_grid(func, origin, h, shape, level=level, band=band, progress=progress)
     vals = _keep_off_corners(vals - level)
     if closed:
@@ -275,7 +363,7 @@ def extract_mesh(
     faces = np.ascontiguousarray(faces[:, ::-1])
     verts_box = verts + origin
     if normals == "exact":
-        _, g = surface.evaluate_box(verts_box, gradient=True, approximate=True)
+        _, g = func(verts_box, gradient=True)
         glen = np.linalg.norm(g, axis=1, keepdims=True)
         vnormals = np.where(glen > 0, -g / np.where(glen > 0, glen, 1), grid_normals)
     else:

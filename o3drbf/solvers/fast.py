@@ -44,6 +44,16 @@ self-interaction (and any pair closer than ~1e-15), so
   exactly confluent) the fast path refuses with a message (change tau by
   ~1%, or solve densely).
 
+**Far centres.**  The grid covers the box of the centres that have a
+neighbour within the near-field radius; the few isolated centres beyond it
+(the pipeline's sphere of exterior constraints around the bounding box) are
+summed directly, both as sources and as targets (:func:`outside_centres`,
+at most ``DIRECT_PAIRS`` kernel evaluations a product).  Otherwise the
+sphere set the grid's box: at 100,000 constraints (delta 40, tau 0.005,
+eps 1e-7) 8.1 GB of FFT arrays, over ``GRID_BUDGET``, and the solve fell
+back to fmm3dpy (375-615 s); with the split, 0.41 GB and the grid.  The grid
+spacing follows the near-field radius (a neighbour count), not tau.
+
 **Gaussian.**  exp(-(r/sigma)^2) is truncated at ``r = sigma
 sqrt(ln(10/eps))`` and applied as a sparse matrix.  **Thin-plate** r^3 has
 no fast path here: products are direct (O(N^2) time, O(N) memory).
@@ -115,7 +125,7 @@ from o3drbf.solvers.base import ConvergenceWarning, Solution, available_memory
 from o3drbf.rbf.sums import kernel_matrix, kernel_sum, polynomial_basis
 
 __all__ = ["FastSum", "TwoLevel", "solve", "make_evaluator", "fast_memory", "default_workers", "DEFAULT_EPS",
-           "GridSum", "fast_operator", "grid_bytes"]
+           "GridSum", "fast_operator", "grid_bytes", "outside_centres", "GRID_BUDGET"]
 
 #: Default relative tolerance of fast sums (evaluation).
 DEFAULT_EPS = 1e-6
@@ -719,6 +729,8 @@ def _fft_workers() -> int:
 
 #: Bytes allowed for one grid backend's FFT arrays (kernel transform + work arrays).
 GRID_BUDGET = 2 * 2**30
+#: Kernel evaluations per product allowed for the far centres a grid leaves out (summed directly).
+DIRECT_PAIRS = 50_000_000
 
 
 def grid_bytes(lo, hi, h: float, half: int) -> int:
@@ -770,6 +782,12 @@ class _Mesh:
         hi = self.origin + (np.array(self.shape) - self.half - 2) * self.h
         return bool((pts.min(axis=0) >= lo).all() and (pts.max(axis=0) <= hi).all())
 
+    def inside(self, pts):
+        """(M,) bool: the points whose stencil lies on this grid."""
+        lo = self.origin + (self.half + 1) * self.h
+        hi = self.origin + (np.array(self.shape) - self.half - 2) * self.h
+        return ((pts >= lo) & (pts <= hi)).all(axis=1)
+
 
 class GridSum:
     """Fast ``sum_j w_j phi(|x - c_j|)`` for the multi-order kernel by a grid (particle-mesh) split.
@@ -802,6 +820,15 @@ class GridSum:
         near part of an evaluation 24 of 51 s: a tenth of all centres).
         Measured at N = 100,000, eps 1e-5 (loaded machine): 400 -> 8.4 s a
         product (grid 360x360x135), 1,000 -> 2.8 s (240x240x96), 2,000 -> 2.7 s.
+    budget : int
+        Bytes allowed for the FFT arrays.
+    tree : cKDTree, optional
+        Of ``centres`` (reused when given).
+    outside : (K,) int array, optional
+        Centres the grid leaves out and sums directly (both as sources and
+        as targets); default :func:`outside_centres` (isolated centres beyond
+        the others' box, such as the exterior sphere), so that the grid's
+        box, and its memory, is set by the data rather than by the sphere.
 
     Raises
     ------
@@ -812,7 +839,7 @@ class GridSum:
     """
 
     def __init__(self, kernel: Kernel, centres, eps: float = DEFAULT_EPS, neighbours: int | None = None,
-                 budget: int = GRID_BUDGET, tree: cKDTree | None = None):
+                 budget: int = GRID_BUDGET, tree: cKDTree | None = None, outside=None):
         if not HAVE_GRID:
             raise ValueError("the grid backend needs numba; use backend='fmm'")
         if not isinstance(kernel, MultiOrder) or kernel.coefficients is None:
@@ -842,8 +869,14 @@ class GridSum:
         h = s / ratio
         half = int(math.ceil(math.sqrt(2 * math.log(10.0 / eps)) * ratio))
         self.s, self.h, self.half, self.sigma = s, h, half, sigma
-        lo, hi = self.centres.min(axis=0), self.centres.max(axis=0)
+        full = _Mesh.nbytes(self.centres.min(axis=0), self.centres.max(axis=0), h, half)
+        if outside is None:
+            outside = outside_centres(self.centres, self.tree, rc)
+        self._set_core(outside)
+        lo, hi = self._cc.min(axis=0), self._cc.max(axis=0)
         need = _Mesh.nbytes(lo, hi, h, half)
+        self.budget = int(budget)
+        self._eval_mesh = None
         if need > budget:
             raise MemoryError(f"the grid backend needs ~{need / 2**30:.1f} GB of FFT arrays (budget "
                               f"{budget / 2**30:.1f} GB); use backend='fmm' or more neighbours")
@@ -863,12 +896,13 @@ class GridSum:
         self.mesh = self._mesh(lo, hi)
         self._cell_setup()
         self._near_m = None
-        key = np.floor((self.centres - self.mesh.origin) / (4 * h)).astype(np.int64)
+        key = np.floor((self._cc - self.mesh.origin) / (4 * h)).astype(np.int64)
         self._perm = np.lexsort((key[:, 2], key[:, 1], key[:, 0]))  # grid order: cache-friendly spreading
-        self._sorted = np.ascontiguousarray(self.centres[self._perm])
+        self._sorted = np.ascontiguousarray(self._cc[self._perm])
         self.info = {"mode": "grid (Gaussian split: FFT far part + sparse near part)", "split": "grid",
                      "near_radius": self.rc, "sigma": sigma, "h": h, "grid": self.mesh.shape,
                      "fft": self.mesh.fshape, "stencil": 2 * half + 1, "grid_bytes": need,
+                     "grid_bytes_all_centres": full, "outside": len(self._out),
                      "setup_seconds": time.perf_counter() - t0}
 
     def _ktable(self, n2):
@@ -885,28 +919,46 @@ class GridSum:
         self._meshes = [m] + self._meshes[:1]
         return m
 
+    def _set_core(self, outside):
+        """Split the centres into the grid's (core) and the few far ones summed directly."""
+        out = np.unique(np.asarray(outside, dtype=np.int64).reshape(-1))
+        if len(out) and (out[0] < 0 or out[-1] >= self.n or len(out) >= self.n):
+            raise ValueError("outside must index fewer than all of the centres; pass None to choose them")
+        self._out = out
+        if len(out) == 0:
+            self._core = None
+            self._cc = self.centres
+            return
+        mask = np.ones(self.n, bool)
+        mask[out] = False
+        self._core = np.nonzero(mask)[0]
+        self._cc = np.ascontiguousarray(self.centres[self._core])
+        self._core_pos = np.full(self.n, -1, np.int64)
+        self._core_pos[self._core] = np.arange(len(self._core))
+
     def _cell_setup(self):
-        lo = self.centres.min(axis=0)
+        lo = self._cc.min(axis=0)
         cell = self.rc
-        dims = np.maximum(np.ceil((self.centres.max(axis=0) - lo) / cell).astype(np.int64), 1)
-        key = _cells(self.centres, lo, cell, dims)
+        dims = np.maximum(np.ceil((self._cc.max(axis=0) - lo) / cell).astype(np.int64), 1)
+        key = _cells(self._cc, lo, cell, dims)
         order = np.argsort(key, kind="stable")
         start = np.searchsorted(key[order], np.arange(int(np.prod(dims)) + 1)).astype(np.int64)
-        self._cl = (lo, cell, dims, order, np.ascontiguousarray(self.centres[order]), start)
+        self._cl = (lo, cell, dims, order, np.ascontiguousarray(self._cc[order]), start)
 
     @property
     def near(self):
-        """Sparse centre-centre matrix of phi_S (built on first use)."""
+        """Sparse matrix of phi_S between the grid's (core) centres (built on first use)."""
         if self._near_m is None:
             lo, cell, dims, order, spts, start = self._cl
-            cnt = _near_count(self.centres, spts, start, lo, cell, dims, self.rc)
-            indptr = np.zeros(self.n + 1, np.int64)
+            nc = len(self._cc)
+            cnt = _near_count(self._cc, spts, start, lo, cell, dims, self.rc)
+            indptr = np.zeros(nc + 1, np.int64)
             np.cumsum(cnt, out=indptr[1:])
             indices = np.empty(indptr[-1], np.int32)
             data = np.empty(indptr[-1])
-            _near_fill(self.centres, spts, order.astype(np.int32), start, lo, cell, dims, self.rc, indptr,
+            _near_fill(self._cc, spts, order.astype(np.int32), start, lo, cell, dims, self.rc, indptr,
                        indices, data, self.tab, self.dr)
-            self._near_m = sp.csr_matrix((data, indices, indptr), shape=(self.n, self.n))
+            self._near_m = sp.csr_matrix((data, indices, indptr), shape=(nc, nc))
             self.info["near_nnz"] = int(indptr[-1])
         return self._near_m
 
@@ -920,7 +972,8 @@ class GridSum:
             if tol <= eps and tol >= 10 * self.eps:
                 tiers = self.__dict__.setdefault("_tiers", {})
                 if tol not in tiers:
-                    tiers[tol] = GridSum(self.kernel, self.centres, eps=tol, neighbours=min(300, max(self.n // 300, 64)), tree=self.tree)
+                    tiers[tol] = GridSum(self.kernel, self.centres, eps=tol, neighbours=min(300, max(self.n // 300, 64)),
+                                         tree=self.tree, outside=self._out)
                 return tiers[tol]
         return self
 
@@ -931,26 +984,86 @@ class GridSum:
         if op is not self:
             return op.matvec(w)
         p = self._perm
-        u = self.mesh.potential(self._sorted, np.ascontiguousarray(w[p]))
+        wc = w if self._core is None else w[self._core]
+        u = self.mesh.potential(self._sorted, np.ascontiguousarray(wc[p]))
+        outc = np.empty(len(self._cc))
+        outc[p] = self.mesh.gather(u, self._sorted, False)
+        outc += self.near @ wc
+        if self._core is None:
+            return outc
+        # The far centres: summed directly (few of them), both ways.
         out = np.empty(self.n)
-        out[p] = self.mesh.gather(u, self._sorted, False)
-        return out + self.near @ w
+        o = self._out
+        out[self._core] = outc + kernel_sum(self.kernel, self.centres[o], w[o], self._cc)
+        out[o] = kernel_sum(self.kernel, self.centres, w, self.centres[o])
+        return out
 
     def evaluate(self, w, targets, gradient: bool = False, eps: float | None = None):
-        """sum_j w_j phi(|x - c_j|) (and its gradient) at arbitrary targets."""
+        """sum_j w_j phi(|x - c_j|) (and its gradient) at arbitrary targets.
+
+        Targets beyond the grid are summed directly when they are few (at most
+        ``DIRECT_PAIRS / N``), else the grid is enlarged to cover them."""
         t = np.ascontiguousarray(np.asarray(targets, dtype=float).reshape(-1, 3))
         w = w if isinstance(w, np.ndarray) and w.dtype == float else np.asarray(w, dtype=float)
         if len(t) == 0:
             return (np.zeros(0), np.zeros((0, 3))) if gradient else np.zeros(0)
-        if self.mesh.covers(t):
-            mesh = self.mesh
+        base = self.mesh if self._eval_mesh is None else self._eval_mesh
+        inside = base.inside(t)
+        if inside.all():
+            mesh, far = base, None
+        elif (~inside).sum() * self.n <= DIRECT_PAIRS:
+            mesh, far = base, np.nonzero(~inside)[0]
         else:
-            mesh = self._mesh(np.minimum(self.centres.min(0), t.min(0)), np.maximum(self.centres.max(0), t.max(0)))
+            mesh, far = self._mesh(np.minimum(self._cc.min(0), t.min(0)), np.maximum(self._cc.max(0), t.max(0))), None
+        if far is not None:
+            near_t = np.nonzero(inside)[0]
+            v_out = np.empty(len(t))
+            g_out = np.empty((len(t), 3)) if gradient else None
+            exact = kernel_sum(self.kernel, self.centres, w, t[far], gradient=gradient)
+            if len(near_t):
+                part = self._evaluate_on(mesh, w, t[near_t], gradient)
+                if gradient:
+                    v_out[near_t], g_out[near_t] = part
+                else:
+                    v_out[near_t] = part
+            if gradient:
+                v_out[far], g_out[far] = exact
+                return v_out, g_out
+            v_out[far] = exact
+            return v_out
+        return self._evaluate_on(mesh, w, t, gradient)
+
+    def cover(self, lo, hi) -> bool:
+        """Build (once) the grid :meth:`evaluate` uses so that it covers the box ``[lo, hi]``.
+
+        Without it, targets beyond the centres' grid enlarge it call by call
+        (a new kernel transform and potential each time); with it, one grid
+        and one potential serve a whole extraction.  Returns False (and
+        changes nothing) when that grid would exceed the budget.
+
+        Parameters
+        ----------
+        lo, hi : (3,) array_like
+            Corners of the box, in the centres' coordinates.
+        """
+        lo = np.minimum(self._cc.min(axis=0), np.asarray(lo, dtype=float))
+        hi = np.maximum(self._cc.max(axis=0), np.asarray(hi, dtype=float))
+        if self.mesh.covers(np.array([lo, hi])):
+            self._eval_mesh = None
+            return True
+        if _Mesh.nbytes(lo, hi, self.h, self.half) > self.budget:
+            return False
+        self._eval_mesh = self._mesh(lo, hi)
+        return True
+
+    def _evaluate_on(self, mesh, w, t, gradient):
+        """The grid + near sum from the core centres at targets inside ``mesh``, plus the far centres directly."""
         cached = getattr(self, "_ucache", None)
+        wc = w if self._core is None else w[self._core]
         if cached is not None and cached[0] is mesh and cached[1] is w:
             u = cached[2]  # same weights object (an evaluator): reuse the grid potential
         else:
-            u = mesh.potential(self._sorted, np.ascontiguousarray(w[self._perm]))
+            u = mesh.potential(self._sorted, np.ascontiguousarray(wc[self._perm]))
             self._ucache = (mesh, w, u)
         # Targets in grid order: the stencil reads (and the cell-list scans) stay in cache.
         key = np.floor((t - mesh.origin) / (4 * mesh.h)).astype(np.int64)
@@ -959,8 +1072,16 @@ class GridSum:
         out = mesh.gather(u, ts, gradient)
         vals, grad = out if gradient else (out, np.empty((1, 3)))
         lo, cell, dims, order, spts, start = self._cl
-        _near_sum(ts, spts, np.ascontiguousarray(w[order]), start, lo, cell, dims, self.rc, self.tab, self.dtab,
+        _near_sum(ts, spts, np.ascontiguousarray(wc[order]), start, lo, cell, dims, self.rc, self.tab, self.dtab,
                   self.dr, vals, grad, gradient)
+        if self._core is not None:
+            o = self._out
+            extra = kernel_sum(self.kernel, self.centres[o], w[o], ts, gradient=gradient)
+            if gradient:
+                vals += extra[0]
+                grad += extra[1]
+            else:
+                vals += extra
         v_out = np.empty(len(t))
         v_out[tp] = vals
         if gradient:
@@ -972,21 +1093,79 @@ class GridSum:
     def from_subset(self, subset):
         """A callable ``(w_sub, eps) -> sum_{j in subset} w_j phi(|c_i - c_j|)`` at every centre."""
         subset = np.asarray(subset)
+        if self._core is None:
+            csub, cmask, osub = subset, None, subset[:0]
+        else:
+            cmask = self._core_pos[subset] >= 0
+            csub, osub = self._core_pos[subset[cmask]], subset[~cmask]
         cache = {}
 
         def apply(w, eps=None):
             op = self._tier(eps)
+            w = np.asarray(w, dtype=float)
             if op not in cache:
-                key = np.floor((self.centres[subset] - op.mesh.origin) / (4 * op.h)).astype(np.int64)
+                key = np.floor((op._cc[csub] - op.mesh.origin) / (4 * op.h)).astype(np.int64)
                 pos = np.lexsort((key[:, 2], key[:, 1], key[:, 0]))
-                cache[op] = (np.ascontiguousarray(self.centres[subset[pos]]), pos, op.near[:, subset].tocsr())
+                cache[op] = (np.ascontiguousarray(op._cc[csub[pos]]), pos, op.near[:, csub].tocsr())
             pts, pos, cols = cache[op]
-            u = op.mesh.potential(pts, np.ascontiguousarray(np.asarray(w, dtype=float)[pos]))
-            out = np.empty(self.n)
-            out[op._perm] = op.mesh.gather(u, op._sorted, False)
-            return out + cols @ w
+            wc = w if cmask is None else w[cmask]
+            outc = np.empty(len(op._cc))
+            if len(csub):
+                u = op.mesh.potential(pts, np.ascontiguousarray(wc[pos]))
+                outc[op._perm] = op.mesh.gather(u, op._sorted, False)
+                outc += cols @ wc
+            else:
+                outc[:] = 0.0
+            if self._core is None:
+                return outc
+            out = np.zeros(self.n)
+            out[self._core] = outc
+            if len(osub):
+                out += kernel_sum(self.kernel, self.centres[osub], w[~cmask], self.centres)
+            o = self._out
+            out[o] = kernel_sum(self.kernel, self.centres[subset], w, self.centres[o])
+            return out
 
         return apply
+
+
+def outside_centres(centres, tree: cKDTree, radius: float, max_pairs: int | None = None) -> np.ndarray:
+    """Indices of the few far centres a grid need not cover (summed directly instead).
+
+    A centre is isolated when no other centre lies within ``radius`` (the
+    near-field radius, ~1,000 neighbours for the others): e.g. the sparse
+    sphere of exterior constraints around the bounding box, which would
+    otherwise set the grid's box (at 100,000 constraints, 8.1 GB of FFT
+    arrays instead of 0.35 GB).  The grid then covers the box of the
+    non-isolated centres; the centres outside that box are returned, or none
+    if they are more than ``max_pairs / N`` (default ``DIRECT_PAIRS``).
+
+    Parameters
+    ----------
+    centres : (N, 3) array
+    tree : cKDTree
+        Of ``centres``.
+    radius : float
+    max_pairs : int, optional
+
+    Returns
+    -------
+    (K,) int array
+    """
+    centres = np.asarray(centres, dtype=float)
+    n = len(centres)
+    cap = DIRECT_PAIRS if max_pairs is None else int(max_pairs)
+    if n < 3:
+        return np.zeros(0, np.int64)
+    d, _ = tree.query(centres, k=2)
+    busy = d[:, 1] <= radius
+    if busy.sum() < 2:
+        return np.zeros(0, np.int64)
+    lo, hi = centres[busy].min(axis=0), centres[busy].max(axis=0)
+    out = np.nonzero(((centres < lo) | (centres > hi)).any(axis=1))[0]
+    if len(out) * n > cap:
+        return np.zeros(0, np.int64)
+    return out.astype(np.int64)
 
 
 def fast_operator(kernel: Kernel, centres, eps: float = DEFAULT_EPS, backend: str = "auto"):
@@ -1461,7 +1640,8 @@ def make_evaluator(kernel: Kernel, centres, weights, eps: float = DEFAULT_EPS, c
     polynomial, by FMM with targets (multi-order), sparse sums (Gaussian) or
     direct sums (thin-plate); ``backend`` as in :func:`fast_operator` (the
     grid for the multi-order kernel by default).  Targets are processed
-    ``chunk`` at a time."""
+    ``chunk`` at a time.  ``evaluator.cover(lo, hi)`` prepares the grid for
+    targets in that box (:meth:`GridSum.cover`; a no-op for other backends)."""
     fast = fast_operator(kernel, centres, eps=eps, backend=backend)
     if isinstance(fast, GridSum):
         # The grid's gradients are ~10x less accurate than its values: gradients
@@ -1472,12 +1652,21 @@ def make_evaluator(kernel: Kernel, centres, weights, eps: float = DEFAULT_EPS, c
             if not gradient:
                 return fast
             if "op" not in fine:
-                fine["op"] = GridSum(kernel, fast.centres, eps=eps / 10, tree=fast.tree)
+                fine["op"] = GridSum(kernel, fast.centres, eps=eps / 10, tree=fast.tree, outside=fast._out)
+                if "box" in fine:
+                    fine["op"].cover(*fine["box"])
             return fine["op"]
+
+        def cover(lo, hi):
+            fine["box"] = (lo, hi)
+            return fast.cover(lo, hi)
     else:
 
         def pick(gradient):
             return fast
+
+        def cover(lo, hi):
+            return False
     weights = np.ascontiguousarray(weights, dtype=float)
     if weights.shape != (fast.n,):
         raise ValueError(f"weights must have shape ({fast.n},), got {weights.shape}")
@@ -1493,4 +1682,5 @@ def make_evaluator(kernel: Kernel, centres, weights, eps: float = DEFAULT_EPS, c
         return np.concatenate(parts)
 
     evaluator.fast_sum = fast
+    evaluator.cover = cover
     return evaluator
