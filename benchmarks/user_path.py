@@ -39,7 +39,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
-BUNNY = Path("/work/shared/data/stanford_bunny/reconstruction/bun_zipper.ply")
+BUNNY = ROOT.parent / "shared" / "data" / "stanford_bunny" / "reconstruction" / "bun_zipper.ply"
 
 
 def o3drbf_command() -> list[str]:
