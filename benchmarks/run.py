@@ -1,6 +1,10 @@
 """`make bench`: every benchmark table, one after another, in one run.
 
-    python benchmarks/run.py [--only core,vision,scale,photos] [--threads 2]
+    python benchmarks/run.py [--only user,core,vision,scale,photos] [--threads 2]
+
+``user`` (first) times the command line with its defaults against Open3D
+Poisson and ferreus_rbf in the same run (:mod:`user_path`); the others are
+fixed-parameter sweeps of the library's pieces, labelled as such.
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 SUITES = {
+    "user": ["user_path.py"],
     "core": ["core.py"],
     "vision": ["vision.py"],
     "scale": ["scale.py"],
