@@ -8,7 +8,7 @@ The data's path, each stage a public function that can be called alone::
     cset = build_constraints(data, options.constraints)         # constraints (normalized box)
     params = choose_parameters(data, cset, options.parameters)  # kernel and smoothing
     surface, solution, robust = fit_surface(cset, params, options.fit)   # fit
-    mesh = extract(surface, options.extract)                    # extract
+    mesh = mesh_surface(surface, options.extract)               # extract
     mesh = colour(mesh, data)                                   # colour
 
 :func:`reconstruct` runs them in that order and returns a
@@ -52,7 +52,7 @@ __all__ = [
     "choose_parameters",
     "fit",
     "fit_surface",
-    "extract",
+    "mesh_surface",
     "colour",
     "DEFAULTS",
 ]
@@ -676,7 +676,7 @@ def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = F
     return surface, sol, robust
 
 
-def extract(surface: ImplicitSurface, options: ExtractOptions = ExtractOptions(), *, progress: bool = False):
+def mesh_surface(surface: ImplicitSurface, options: ExtractOptions = ExtractOptions(), *, progress: bool = False):
     """Marching cubes of f = 0 (:func:`o3drbf.extract.extract_mesh`).
 
     Raises
@@ -794,7 +794,7 @@ def reconstruct(points, normals=None, *, cameras=None, point_camera=None, colors
     mesh = None
     if extract_mesh:
         with stages.stage("extract"):
-            mesh = extract(surface, opts.extract, progress=progress)
+            mesh = mesh_surface(surface, opts.extract, progress=progress)
         if data.colors is not None:
             with stages.stage("colour"):
                 mesh = colour(mesh, data)

@@ -115,7 +115,7 @@ def test_stages_alone_give_what_reconstruct_gives():
     cset = o3drbf.build_constraints(data, opts.constraints)
     params = o3drbf.choose_parameters(data, cset, opts.parameters)
     surface, sol, _ = o3drbf.fit_surface(cset, params, opts.fit)
-    mesh = o3drbf.extract(surface, opts.extract)
+    mesh = o3drbf.mesh_surface(surface, opts.extract)
     assert not estimated and outl.removed == 0
     np.testing.assert_allclose(np.asarray(mesh.vertices), np.asarray(whole.mesh.vertices))
     rep = whole.report
@@ -161,3 +161,11 @@ def test_estimated_normals_are_oriented_outward_per_separate_object():
     truth = np.vstack([na, na])
     agree = np.einsum("ij,ij->i", normals, truth)
     assert (agree[:3000] > 0).mean() > 0.98 and (agree[3000:] > 0).mean() > 0.98
+
+
+def test_public_names_do_not_shadow_modules():
+    import importlib
+
+    for name in ("extract", "surface", "pipeline", "options", "pointset"):
+        module = importlib.import_module(f"o3drbf.{name}")
+        assert getattr(o3drbf, name, module) is module, name
