@@ -27,7 +27,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from o3drbf.constraints.core import EXTERIOR, SPHERE, SURFACE, Constraints, bounding_sphere, exterior_from_normals, surface_constraints
-from o3drbf.options import DEFAULTS, PAPER_VALUES, ConstraintOptions, ExtractOptions, FitOptions, Options, OutlierOptions, ParameterOptions
+from o3drbf.options import DEFAULTS, PAPER_VALUES, auto_resolution, auto_surface_count, ConstraintOptions, ExtractOptions, FitOptions, Options, OutlierOptions, ParameterOptions
 from o3drbf.pointset import PointSet
 from o3drbf.prep.normalize import Normalization, check_spans_volume
 from o3drbf.prep.sampling import mean_spacing
@@ -200,6 +200,8 @@ class Report:
         Rounds, down-weighted and dropped constraints, the residual scale.
     constraints_seconds, solve_seconds, extract_seconds, total_seconds : float
     vertices, triangles : int or None
+    resolution : int or None
+        Marching-cubes cells along the longest side (after "auto").
     stages : list of StageTiming
     """
 
@@ -231,6 +233,7 @@ class Report:
     total_seconds: float = 0.0
     vertices: int | None = None
     triangles: int | None = None
+    resolution: int | None = None
     stages: list = field(default_factory=list)
 
     def as_dict(self) -> dict:
@@ -492,6 +495,8 @@ def build_constraints(data: PointSet, options: ConstraintOptions = ConstraintOpt
     count = None if options.surface_radius is not None else options.surface_count
     if count is None and options.surface_radius is None:
         log.info("surface_count=None: every point is a surface constraint")
+    if count == "auto":
+        count = auto_surface_count(len(data))
     pts = data.points
     norm = Normalization.from_points(pts)
     box = norm.forward(pts)
@@ -687,8 +692,11 @@ def mesh_surface(surface: ImplicitSurface, options: ExtractOptions = ExtractOpti
     from o3drbf.extract import extract_mesh
 
     options.validate()
+    resolution = options.resolution
+    if resolution == "auto":
+        resolution = auto_resolution(float(surface.metadata.get("mean_spacing", float("nan"))))
     try:
-        return extract_mesh(surface, resolution=options.resolution, voxel_size=options.voxel_size, bounds=options.bounds, progress=progress)
+        return extract_mesh(surface, resolution=resolution, voxel_size=options.voxel_size, bounds=options.bounds, progress=progress)
     except RuntimeError as exc:
         lam = surface.metadata.get("lambda_surface", float("nan"))
         raise RuntimeError(
@@ -833,6 +841,8 @@ def reconstruct(points, normals=None, *, cameras=None, point_camera=None, colors
         total_seconds=time.perf_counter() - t_start,
         vertices=None if mesh is None else len(mesh.vertices),
         triangles=None if mesh is None else len(mesh.triangles),
+        resolution=None if mesh is None or opts.extract.voxel_size is not None else (
+            auto_resolution(cset.spacing) if opts.extract.resolution == "auto" else int(opts.extract.resolution)),
         stages=stages.timings,
     )
     return Reconstruction(surface, mesh, used, sol, report, opts)

@@ -50,7 +50,7 @@ def add_option_arguments(parser: argparse.ArgumentParser) -> None:
 
     :func:`options_from_args` turns the parsed values back into :class:`~o3drbf.options.Options`.
     """
-    from o3drbf.options import OUTLIER_METHODS, PAPER_VALUES, SOLVER_METHODS
+    from o3drbf.options import OUTLIER_METHODS, PAPER_VALUES, SOLVER_METHODS, count_or_auto
     from o3drbf.rbf.kernels import KERNELS
 
     d = DEFAULTS
@@ -77,7 +77,8 @@ def add_option_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--robust", action=argparse.BooleanOptionalAction, default=d["robust"],
                    help="iteratively reweighted fit: down-weight surface constraints far from the surface (default: on)")
     g = parser.add_argument_group("constraints")
-    g.add_argument("--surface-count", type=_positive_int, default=d["surface_count"], help="Poisson-disc subsample to about N surface constraints (default %(default)s)")
+    g.add_argument("--surface-count", type=count_or_auto, default=d["surface_count"], metavar="auto|N",
+                   help="Poisson-disc subsample to about N surface constraints; auto: points / 12, between 3,000 and 30,000 (default %(default)s)")
     g.add_argument("--surface-radius", type=float, default=d["surface_radius"], help="Poisson-disc radius (box units) instead of --surface-count")
     g.add_argument("--all-points", action="store_true", help="use every point as a surface constraint (no subsampling)")
     g.add_argument("--exterior-ratio", type=float, default=d["exterior_ratio"], help="exterior constraints per surface constraint (default %(default)s)")
@@ -86,7 +87,8 @@ def add_option_arguments(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("solve and mesh")
     g.add_argument("--solver", default=d["solver"], choices=list(SOLVER_METHODS),
                    help="auto: dense up to a few thousand constraints, fast above (default %(default)s)")
-    g.add_argument("--resolution", type=_positive_int, default=d["resolution"], help="marching-cubes cells along the longest side (default %(default)s)")
+    g.add_argument("--resolution", type=count_or_auto, default=d["resolution"], metavar="auto|N",
+                   help="marching-cubes cells along the longest side; auto: 2.5 per constraint spacing, 128 to 256 (default %(default)s)")
     g.add_argument("--voxel-size", type=float, default=d["voxel_size"], help="grid spacing in data units (overrides --resolution)")
 
 
@@ -257,7 +259,7 @@ def _reconstruct_tiled(args, data, options, out, t0) -> int:
     c = options.constraints
     surface, mesh, stats = reconstruct_tiled(
         data.points, data.normals, tiles=args.tiles, scheduler=args.scheduler, workers=args.workers,
-        resolution=options.extract.resolution, voxel_size=options.extract.voxel_size, seed=args.seed, progress=not args.quiet,
+        resolution=128 if options.extract.resolution == "auto" else options.extract.resolution, voxel_size=options.extract.voxel_size, seed=args.seed, progress=not args.quiet,
         auto=p.auto, delta=p.delta, tau=p.tau, lambda_surface=p.lambda_surface, lambda_exterior=p.lambda_exterior,
         exterior_ratio=c.exterior_ratio, exterior_offset=c.exterior_offset, sphere_count=c.sphere_count, solver=options.fit.solver,
     )
@@ -308,7 +310,8 @@ def summary(result, points, input_path, output_path, model_path=None, seconds=No
         lines.append(f"  robust fit       {r.get('rounds', 0)} round(s), {r.get('downweighted', 0):,} constraints down-weighted, "
                      f"{r.get('dropped', 0):,} dropped (residual scale {r.get('scale', float('nan')):.2g} box units)")
     lines += [
-        f"  mesh             {s.triangles:,} triangles, {s.vertices:,} vertices, extracted in {s.extract_seconds:.2f} s",
+        f"  mesh             {s.triangles:,} triangles, {s.vertices:,} vertices"
+        + (f", {s.resolution} cells on the longest side" if s.resolution else "") + f", extracted in {s.extract_seconds:.2f} s",
         f"  watertight       {'yes' if rep['watertight'] else 'NO'} (Open3D's is_watertight: closed, manifold, "
         f"{rep['self_intersections'] or 'no'} self-intersecting triangle pair(s)), "
         f"Euler characteristic {rep['euler_characteristic']}, {rep['components']} component(s)",

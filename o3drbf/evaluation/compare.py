@@ -394,7 +394,7 @@ def compare_with_meshes(
     truth=None,
     methods=METHODS,
     seed: int = 0,
-    resolution: int = DEFAULTS["resolution"],
+    resolution: int | str = DEFAULTS["resolution"],
     poisson_depth: int = 8,
     density_quantile: float = 0.0,
     *,
@@ -410,7 +410,8 @@ def compare_with_meshes(
         if normals.shape != pts.shape or not np.isfinite(normals).all():
             raise ValueError(f"normals must be a finite {pts.shape} array like the points, got {normals.shape}")
     seed = check_number("seed", seed, low=0, integer=True)
-    resolution = check_number("resolution", resolution, low=2, integer=True)
+    if resolution != "auto":
+        resolution = check_number("resolution", resolution, low=2, integer=True)
     poisson_depth = check_number("poisson_depth", poisson_depth, low=1, high=12, integer=True)
     density_quantile = check_number("density_quantile", density_quantile, low=0.0, high=1.0)
     cams = _camera_list(cameras)
@@ -587,7 +588,9 @@ def add_compare_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentP
     parser.add_argument("--truth", metavar="MESH", default=None, help="ground-truth mesh: adds Chamfer, Hausdorff, F-score (1%% of its diagonal) and normal consistency")
     parser.add_argument("--methods", default=",".join(METHODS), help="comma-separated, from: " + ", ".join(METHODS) + " (default: all)")
     parser.add_argument("-o", "--out", metavar="OUT_DIR", default="comparison", help="output folder for comparison.{md,csv,json,png} (created; default %(default)s)")
-    parser.add_argument("--resolution", type=int, default=DEFAULTS["resolution"], help="o3drbf marching-cubes resolution (default %(default)s)")
+    from o3drbf.options import count_or_auto
+
+    parser.add_argument("--resolution", type=count_or_auto, default=DEFAULTS["resolution"], help="o3drbf marching-cubes resolution, auto or N (default %(default)s)")
     parser.add_argument("--poisson-depth", type=int, default=8, help="Open3D Poisson octree depth (default %(default)s)")
     parser.add_argument("--density-quantile", type=float, default=0.0, help="Poisson: trim vertices below this density quantile (default %(default)s: closed surface)")
     parser.add_argument("--seed", type=int, default=0, help="sampling seed (default %(default)s)")
