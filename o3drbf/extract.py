@@ -11,7 +11,6 @@ crossing.  ``band=False`` evaluates every grid point (the reference).
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 

@@ -25,6 +25,7 @@ __all__ = [
     "auto_surface_count",
     "auto_resolution",
     "count_or_auto",
+    "whole_number",
     "CARVE_DEFAULTS",
     "TILE_DEFAULTS",
     "PHOTO_DEFAULTS",
@@ -104,19 +105,28 @@ def auto_resolution(spacing_box: float) -> int:
     return int(min(max(round(2.0 * a["cells_per_spacing"] / spacing_box), a["min_resolution"]), a["max_resolution"]))
 
 
-def count_or_auto(text: str):
-    """Argument type: ``"auto"`` or a whole number >= 1 (for ``--surface-count`` and ``--resolution``)."""
+def whole_number(text: str, low: int = 1, auto: bool = False):
+    """Argument type: a whole number >= ``low`` (or ``"auto"`` when ``auto``).
+
+    Raises ``argparse.ArgumentTypeError`` naming what was expected.
+    """
     import argparse
 
-    if str(text).strip().lower() == "auto":
+    if auto and str(text).strip().lower() == "auto":
         return "auto"
+    expected = "'auto' or a whole number" if auto else "a whole number"
     try:
         value = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected 'auto' or a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected 'auto' or a number >= 1, got {value}")
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}") from None
+    if value < low:
+        raise argparse.ArgumentTypeError(f"expected {expected} >= {low}, got {value}")
     return value
+
+
+def count_or_auto(text: str):
+    """Argument type: ``"auto"`` or a whole number >= 1 (``--surface-count``, ``--resolution``, ``--tiles``)."""
+    return whole_number(text, 1, auto=True)
 
 
 #: The viewer's starting values where an interactive refit needs a lighter

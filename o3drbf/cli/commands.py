@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 from o3drbf.io.files import MESH_FORMATS
-from o3drbf.options import DEFAULTS
+from o3drbf.options import DEFAULTS, whole_number
 
 __all__ = ["main", "build_parser", "check_reconstruct_files"]
 
@@ -26,23 +26,11 @@ log = logging.getLogger("o3drbf")
 
 
 def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a number >= 1, got {value}")
-    return value
+    return whole_number(text, 1)
 
 
 def _non_negative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {value}")
-    return value
+    return whole_number(text, 0)
 
 
 def add_option_arguments(parser: argparse.ArgumentParser) -> None:
@@ -92,7 +80,7 @@ def add_option_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--voxel-size", type=float, default=d["voxel_size"], help="grid spacing in data units (overrides --resolution)")
 
 
-def options_from_args(args) -> "Options":
+def options_from_args(args):
     """:class:`~o3drbf.options.Options` from arguments added by :func:`add_option_arguments`."""
     from o3drbf.options import Options
 

@@ -6,7 +6,6 @@
 
 from __future__ import annotations
 
-import argparse
 import time
 
 from o3drbf.tiles.cluster import tile_client
@@ -20,15 +19,9 @@ __all__ = ["reconstruct_tiled", "tiles_argument"]
 
 def tiles_argument(text: str):
     """argparse ``type=`` for ``--tiles``: "auto" or a whole number >= 1."""
-    if text == "auto":
-        return "auto"
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--tiles expects 'auto' or a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"--tiles expects a number >= 1, got {value}")
-    return value
+    from o3drbf.options import count_or_auto
+
+    return count_or_auto(text)
 
 
 def reconstruct_tiled(
