@@ -623,7 +623,16 @@ def main_compare(args: argparse.Namespace) -> int:
     data = read_input(args.input, cameras=getattr(args, "cameras", None))
     points, normals, cameras, point_camera = data.points, data.normals, data.cameras, data.point_camera
     out = Path(getattr(args, "out", None) or "comparison")
+    from o3drbf.io.files import check_outputs
+
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"-o {out} is a file; give a folder for comparison.md/.csv/.json/.png")
+    inputs = [args.input, getattr(args, "truth", None), getattr(args, "cameras", None)]
+    outputs = [out / f"comparison.{ext}" for ext in ("md", "csv", "json", "png")]
+    if out.is_dir():
+        check_outputs(outputs, inputs)  # before any method runs: never an input, never read-only
     out.mkdir(parents=True, exist_ok=True)
+    check_outputs(outputs, inputs)
     rows, meshes = compare_with_meshes(
         points,
         normals,
