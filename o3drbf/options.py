@@ -105,6 +105,13 @@ def auto_resolution(spacing_box: float) -> int:
     return int(min(max(round(2.0 * a["cells_per_spacing"] / spacing_box), a["min_resolution"]), a["max_resolution"]))
 
 
+def extraction_memory(resolution: int) -> int:
+    """Peak bytes of marching cubes at ``resolution`` cells on the longest side (a cube, the worst case):
+    the float64 value grid, its refinement copy and the boolean masks."""
+    nodes = (int(resolution) + 1) ** 3
+    return int(nodes * (8 * 2 + 4))
+
+
 def whole_number(text: str, low: int = 1, auto: bool = False):
     """Argument type: a whole number >= ``low`` (or ``"auto"`` when ``auto``).
 
@@ -336,6 +343,15 @@ class ExtractOptions:
     def validate(self) -> "ExtractOptions":
         if self.resolution != "auto":
             check_number("resolution", self.resolution, low=2, high=1024, integer=True)
+            from o3drbf.solvers.base import available_memory, gigabytes
+
+            need = extraction_memory(int(self.resolution))
+            limit = int(0.8 * available_memory())
+            if need > limit:
+                raise ValueError(
+                    f"resolution {self.resolution} needs about {gigabytes(need)} for its grids but {gigabytes(limit)} is available; "
+                    "use a smaller --resolution (or 'auto')"
+                )
         if self.voxel_size is not None:
             check_number("voxel_size", self.voxel_size, low=0.0, low_open=True)
         return self

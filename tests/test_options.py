@@ -179,3 +179,12 @@ def test_automatic_sizes_follow_the_data():
     p, n = Sphere(1.0).sample(48_000, seed=5)
     r = o3drbf.reconstruct(p, n, extract_mesh=False, outliers="none")
     assert r.report.surface_constraints == pytest.approx(4000, rel=0.1)
+
+
+def test_a_resolution_that_cannot_fit_is_refused_before_any_work(monkeypatch):
+    import o3drbf.solvers.base as base
+
+    monkeypatch.setattr(base, "available_memory", lambda: 2 * 2**30)
+    Options.create(resolution=256).validate()  # 0.3 GB
+    with pytest.raises(ValueError, match="resolution 1024 needs about .* GB .* use a smaller --resolution"):
+        Options.create(resolution=1024).validate()
