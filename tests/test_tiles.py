@@ -210,7 +210,7 @@ def test_command_line_helpers():
 
     assert tiles_argument("auto") == "auto" and tiles_argument("3") == 3
     for bad in ("0", "x"):
-        with pytest.raises(argparse.ArgumentTypeError, match="--tiles"):
+        with pytest.raises(argparse.ArgumentTypeError, match="expected .auto. or a (whole )?number"):
             tiles_argument(bad)
     pts, nrm = SMALL.sample(800, seed=9)
     surf, mesh, stats = reconstruct_tiled(pts, nrm, tiles=2, scheduler="synchronous", resolution=24,
