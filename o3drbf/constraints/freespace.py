@@ -36,6 +36,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from o3drbf.constraints.visibility import seen_by
 from o3drbf.validation import as_points, as_vectors, check_choice, check_number
 
 __all__ = ["FreeSpaceCheck", "free_space_check", "point_confidence", "seen_by"]
@@ -109,39 +110,6 @@ def _camera_list(cameras) -> list:
         if not isinstance(c, Camera):
             raise ValueError(f"cameras[{i}] is a {type(c).__name__}, not an o3drbf.cameras.model.Camera")
     return cams
-
-
-def seen_by(point_camera, n: int, c: int) -> np.ndarray:
-    """``(n, c)`` bool mask from a camera index per point (-1 unknown) or a mask.
-
-    Parameters
-    ----------
-    point_camera : (n,) int array_like or (n, c) bool array_like
-    n, c : int
-        Number of points and of cameras.
-
-    Returns
-    -------
-    (n, c) bool array
-    """
-    pc = np.asarray(point_camera)
-    if pc.dtype == bool:
-        if pc.shape != (n, c):
-            raise ValueError(f"point_camera as a mask must have shape ({n}, {c}), got {pc.shape}")
-        return pc.copy()
-    if pc.shape != (n,):
-        raise ValueError(f"point_camera must have shape ({n},) (camera index per point, -1 unknown), got {pc.shape}")
-    if not np.issubdtype(pc.dtype, np.number) or (pc != np.round(pc)).any():
-        raise ValueError("point_camera must hold whole numbers (camera index, -1 for unknown)")
-    pc = pc.astype(np.int64)
-    bad = (pc < -1) | (pc >= c)
-    if bad.any():
-        i = int(np.flatnonzero(bad)[0])
-        raise ValueError(f"point_camera[{i}] = {pc[i]} is not a camera index: there are {c} cameras (-1 for unknown)")
-    mask = np.zeros((n, c), dtype=bool)
-    ok = pc >= 0
-    mask[np.flatnonzero(ok), pc[ok]] = True
-    return mask
 
 
 def _median_spacing(points: np.ndarray, sample: int = 20_000, seed: int = 0) -> float:

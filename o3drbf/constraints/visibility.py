@@ -37,7 +37,7 @@ from o3drbf.mesh.arrays import mesh_arrays, raycasting_scene
 from o3drbf.prep.sampling import mean_spacing
 from o3drbf.validation import as_points, check_number
 
-__all__ = ["visibility", "exterior_constraints", "occupancy_mesh"]
+__all__ = ["visibility", "exterior_constraints", "occupancy_mesh", "seen_by"]
 
 #: Default voxel size of the occupancy proxy, in mean point spacings.
 VOXEL_SPACINGS = 3.0
@@ -166,20 +166,29 @@ def occupancy_mesh(points, voxel_size: float):
     return verts, tri, vs
 
 
-def _known(point_camera, n: int, c: int) -> np.ndarray | None:
-    if point_camera is None:
-        return None
+def seen_by(point_camera, n: int, c: int) -> np.ndarray:
+    """``(n, c)`` bool mask from a camera index per point (-1 unknown) or a mask.
+
+    Parameters
+    ----------
+    point_camera : (n,) int array_like or (n, c) bool array_like
+    n, c : int
+        Number of points and of cameras.
+
+    Returns
+    -------
+    (n, c) bool array
+    """
     pc = np.asarray(point_camera)
     if pc.dtype == bool:
         if pc.shape != (n, c):
             raise ValueError(f"point_camera as a mask must have shape ({n}, {c}), got {pc.shape}")
-        return pc
+        return pc.copy()
     if pc.shape != (n,):
         raise ValueError(f"point_camera must have shape ({n},) (camera index per point, -1 unknown), got {pc.shape}")
-    if not np.issubdtype(pc.dtype, np.integer):
-        if not np.issubdtype(pc.dtype, np.number) or (pc != np.round(pc)).any():
-            raise ValueError("point_camera must hold whole numbers (camera index, -1 for unknown)")
-        pc = pc.astype(np.int64)
+    if not np.issubdtype(pc.dtype, np.number) or (pc != np.round(pc)).any():
+        raise ValueError("point_camera must hold whole numbers (camera index, -1 for unknown)")
+    pc = pc.astype(np.int64)
     bad = (pc < -1) | (pc >= c)
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
@@ -188,6 +197,10 @@ def _known(point_camera, n: int, c: int) -> np.ndarray | None:
     ok = pc >= 0
     mask[np.flatnonzero(ok), pc[ok]] = True
     return mask
+
+
+def _known(point_camera, n: int, c: int) -> np.ndarray | None:
+    return None if point_camera is None else seen_by(point_camera, n, c)
 
 
 def _resolve_occluder(pts, occluder, voxel_size, margin, tree=None):
