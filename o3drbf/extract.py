@@ -266,6 +266,21 @@ def _tick(bar, n):
         bar.update(n)
 
 
+def extraction_box(normalization, bounds, voxel_size=None):
+    """The extraction box in box coordinates ((2, 3): lower, upper) and the
+    voxel size in box units (None when ``voxel_size``, in data units, is None).
+
+    Raises ValueError for bounds that are not (2, 3) or a voxel size <= 0.
+    """
+    b = np.asarray(bounds, dtype=float)
+    if b.shape != (2, 3):
+        raise ValueError(f"bounds must have shape (2, 3), got {b.shape}")
+    box = normalization.forward(b)
+    box = np.array([box.min(axis=0), box.max(axis=0)])
+    h_box = None if voxel_size is None else check_number("voxel_size", voxel_size, low=0.0, low_open=True) * normalization.scale
+    return box, h_box
+
+
 def extract_mesh(
     surface,
     resolution: int | None = 128,
@@ -329,12 +344,7 @@ def extract_mesh(
     if bounds is None:
         c = norm.inverse(surface.centres)
         bounds = [c.min(axis=0), c.max(axis=0)]
-    b = np.asarray(bounds, dtype=float)
-    if b.shape != (2, 3):
-        raise ValueError(f"bounds must have shape (2, 3), got {b.shape}")
-    box = norm.forward(b)
-    box = np.array([box.min(axis=0), box.max(axis=0)])
-    h_box = None if voxel_size is None else check_number("voxel_size", voxel_size, low=0.0, low_open=True) * norm.scale
+    box, h_box = extraction_box(norm, bounds, voxel_size)
     resolution_ = resolution if voxel_size is None else None
     # Round cell counts to a multiple of 8 so the narrow band has coarse levels.
     origin, h, shape = grid_for(box, resolution_, h_box, multiple=8 if band else 1)

@@ -21,14 +21,48 @@ from o3drbf.rbf.kernels import Kernel, make_kernel
 from o3drbf.prep.normalize import Normalization
 from o3drbf.rbf.sums import DEFAULT_CHUNK_BYTES, kernel_sum, polynomial_basis
 
-__all__ = ["ImplicitSurface"]
+__all__ = ["DataCoordinates", "ImplicitSurface"]
 
 _FORMAT = "o3drbf-implicit-surface"
 _VERSION = 1
 
 
+class DataCoordinates:
+    """f, grad f and normals in data coordinates, for any implicit function
+    with ``evaluate_box(points, gradient)`` (box coordinates) and a ``normalization``."""
+
+    def __call__(self, points) -> np.ndarray:
+        """f at ``points`` ((N, 3) or (3,), data coordinates); memory bounded for any N."""
+        return self.evaluate(points)
+
+    def evaluate(self, points, gradient: bool = False):
+        """f, and with ``gradient=True`` also grad f, at points in data coordinates.
+
+        Returns
+        -------
+        values : (N,) array
+        gradients : (N, 3) array, only if ``gradient``; d f / d x in data coordinates.
+        """
+        x = as_points(points, min_count=0)
+        out = self.evaluate_box(self.normalization.forward(x), gradient=gradient)
+        if gradient:
+            vals, grads = out
+            return vals, grads * self.normalization.scale
+        return out
+
+    def gradient(self, points) -> np.ndarray:
+        """grad f at ``points`` (data coordinates), shape (N, 3)."""
+        return self.evaluate(points, gradient=True)[1]
+
+    def normals(self, points) -> np.ndarray:
+        """Outward unit normals -grad f / |grad f| (f > 0 inside)."""
+        g = self.gradient(points)
+        norm = np.linalg.norm(g, axis=1, keepdims=True)
+        return -g / np.where(norm > 0, norm, 1.0)
+
+
 @dataclass
-class ImplicitSurface:
+class ImplicitSurface(DataCoordinates):
     """A fitted implicit function.
 
     Parameters
@@ -89,35 +123,6 @@ class ImplicitSurface:
         if getattr(self, "_kernel_table", None) is None or self._kernel_table[0] is not self.kernel:
             self._kernel_table = (self.kernel, _direct.KernelTable(self.kernel))
         return self._kernel_table[1]
-
-    def __call__(self, points) -> np.ndarray:
-        """f at ``points`` ((N, 3) or (3,), data coordinates); memory bounded for any N."""
-        return self.evaluate(points)
-
-    def evaluate(self, points, gradient: bool = False):
-        """f, and with ``gradient=True`` also grad f, at points in data coordinates.
-
-        Returns
-        -------
-        values : (N,) array
-        gradients : (N, 3) array, only if ``gradient``; d f / d x in data coordinates.
-        """
-        x = as_points(points, min_count=0)
-        out = self.evaluate_box(self.normalization.forward(x), gradient=gradient)
-        if gradient:
-            vals, grads = out
-            return vals, grads * self.normalization.scale
-        return out
-
-    def gradient(self, points) -> np.ndarray:
-        """grad f at ``points`` (data coordinates), shape (N, 3)."""
-        return self.evaluate(points, gradient=True)[1]
-
-    def normals(self, points) -> np.ndarray:
-        """Outward unit normals -grad f / |grad f| (f > 0 inside)."""
-        g = self.gradient(points)
-        norm = np.linalg.norm(g, axis=1, keepdims=True)
-        return -g / np.where(norm > 0, norm, 1.0)
 
     # -- persistence --------------------------------------------------------------
     def save(self, path: str | os.PathLike) -> Path:

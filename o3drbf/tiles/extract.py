@@ -26,7 +26,7 @@ import time
 
 import numpy as np
 
-from o3drbf.extract import grid_for
+from o3drbf.extract import extraction_box, grid_for
 from o3drbf.tiles.cluster import run_tasks, tile_client
 from o3drbf.validation import check_number
 
@@ -54,12 +54,7 @@ def lattice_for(surface, resolution: int | None = 128, voxel_size: float | None 
         bounds = surface.metadata.get("bounds")
     if bounds is None:
         bounds = surface.root_box()
-    b = np.asarray(bounds, dtype=float)
-    if b.shape != (2, 3):
-        raise ValueError(f"bounds must have shape (2, 3), got {b.shape}")
-    box = norm.forward(b)
-    box = np.array([box.min(axis=0), box.max(axis=0)])
-    h_box = None if voxel_size is None else check_number("voxel_size", voxel_size, low=0.0, low_open=True) * norm.scale
+    box, h_box = extraction_box(norm, bounds, voxel_size)
     res = resolution if voxel_size is None else None
     _, h0, shape0 = grid_for(box, res, h_box)
     cells0 = max(shape0) - 1

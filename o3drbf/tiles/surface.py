@@ -19,9 +19,8 @@ import numpy as np
 from o3drbf.io.files import atomic_path
 from o3drbf.prep.normalize import Normalization
 from o3drbf.rbf.kernels import make_kernel
-from o3drbf.surface import ImplicitSurface
+from o3drbf.surface import DataCoordinates, ImplicitSurface
 from o3drbf.tiles.partition import Partition, box_distance, wendland, wendland_derivative
-from o3drbf.validation import as_points
 
 __all__ = ["TiledSurface"]
 
@@ -35,7 +34,7 @@ def _bare(s: ImplicitSurface) -> ImplicitSurface:
 
 
 @dataclass
-class TiledSurface:
+class TiledSurface(DataCoordinates):
     """A partition-of-unity blend of a global fit and per-tile residual fits.
 
     Parameters
@@ -124,35 +123,6 @@ class TiledSurface:
             return vals
         gcorr = np.where(covered[:, None], gnum / safe[:, None] - (num / safe**2)[:, None] * gtotal, 0.0)
         return vals, grads + gcorr
-
-    def __call__(self, points) -> np.ndarray:
-        """f at ``points`` ((N, 3), data coordinates)."""
-        return self.evaluate(points)
-
-    def evaluate(self, points, gradient: bool = False):
-        """f, and with ``gradient=True`` grad f, at points in data coordinates.
-
-        Returns
-        -------
-        values : (N,) array
-        gradients : (N, 3) array, only if ``gradient`` (d f / d x, data coordinates)
-        """
-        x = as_points(points, min_count=0)
-        out = self.evaluate_box(self.normalization.forward(x), gradient=gradient)
-        if gradient:
-            vals, grads = out
-            return vals, grads * self.normalization.scale
-        return out
-
-    def gradient(self, points) -> np.ndarray:
-        """grad f at ``points`` (data coordinates), shape (N, 3)."""
-        return self.evaluate(points, gradient=True)[1]
-
-    def normals(self, points) -> np.ndarray:
-        """Outward unit normals -grad f / |grad f|, shape (N, 3)."""
-        g = self.gradient(points)
-        n = np.linalg.norm(g, axis=1, keepdims=True)
-        return -g / np.where(n > 0, n, 1.0)
 
     def root_box(self) -> np.ndarray:
         """(2, 3) box (data coordinates) where sum_t w_t > 0 is guaranteed."""
