@@ -21,6 +21,7 @@ __all__ = [
     "OUTLIER_METHODS",
     "PAPER_VALUES",
     "VIEWER_OVERRIDES",
+    "VIEWER_DISPLAY",
     "AUTO_SIZES",
     "auto_surface_count",
     "auto_resolution",
@@ -139,6 +140,11 @@ def count_or_auto(text: str):
 #: The viewer's starting values where an interactive refit needs a lighter
 #: problem than a final reconstruction (everything else: :data:`DEFAULTS`).
 VIEWER_OVERRIDES = {"resolution": 64, "surface_count": 1500}
+
+#: What the viewer draws: at most ``max_points`` of each point layer (a
+#: seeded subsample, so the surface stays visible on dense scans), the input
+#: points light and small.
+VIEWER_DISPLAY = {"max_points": 50_000, "point_size": 1.5, "point_color": "#a9a9a9"}
 
 #: Space carving from photographs (:mod:`o3drbf.photo.carve`).
 CARVE_DEFAULTS = {

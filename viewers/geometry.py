@@ -1,10 +1,11 @@
-"""Geometry for drawing: camera frusta, the up direction, consistently wound triangles (arrays only)."""
+"""Geometry for drawing: camera frusta, the up direction and the start view, consistently wound
+triangles, display subsamples, distances between meshes (arrays only)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["camera_frusta", "view_up", "view_direction", "wind_like_normals"]
+__all__ = ["camera_frusta", "view_up", "view_direction", "wind_like_normals", "subsample", "look_at", "vertex_distances"]
 
 
 def camera_frusta(cameras, depth: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -105,3 +106,80 @@ def wind_like_normals(vertices, triangles, vertex_normals) -> np.ndarray:
     out = t.copy()
     out[flip] = out[flip][:, ::-1]
     return out
+
+
+def subsample(count: int, cap: int, seed: int = 0) -> np.ndarray:
+    """Indices of at most ``cap`` of ``count`` items, drawn without replacement, sorted (deterministic).
+
+    Parameters
+    ----------
+    count : int
+        How many items there are.
+    cap : int
+        How many to keep at most (>= 1).
+    seed : int
+        The same ``(count, cap, seed)`` always gives the same indices.
+
+    Returns
+    -------
+    (min(count, cap),) int array
+        All of ``range(count)`` when ``count <= cap``.
+    """
+    count, cap = int(count), int(cap)
+    if cap < 1:
+        raise ValueError(f"the display cap must be at least 1 point, got {cap}; raise --max-points")
+    if count <= cap:
+        return np.arange(count)
+    return np.sort(np.random.default_rng(seed).choice(count, size=cap, replace=False))
+
+
+def look_at(bounds, up, view_angle: float, zoom: float = 1.0) -> list[tuple]:
+    """A camera position that shows the box ``bounds`` from the side and above, ``up`` up.
+
+    Parameters
+    ----------
+    bounds : (2, 3) array
+        Low and high corners.
+    up : (3,) array
+    view_angle : float
+        The camera's vertical view angle in degrees.
+    zoom : float
+        1 fits the box's bounding sphere in 75% of the view; below 1 shows more around it.
+
+    Returns
+    -------
+    [eye, focal point, up] : list of three 3-tuples (PyVista's ``camera_position``)
+    """
+    lo, hi = np.asarray(bounds, dtype=float)
+    c = (lo + hi) / 2
+    radius = 0.5 * float(np.linalg.norm(hi - lo)) or 1.0
+    half_angle = np.radians(view_angle / 2)
+    eye = c + radius / np.sin(half_angle) / (0.75 * zoom) * view_direction(up)
+    return [tuple(eye), tuple(c), tuple(np.asarray(up, dtype=float))]
+
+
+def vertex_distances(vertices, other_vertices, other_triangles) -> np.ndarray:
+    """Unsigned distance from each vertex to the nearest point of another triangle mesh.
+
+    Open3D's ray-casting scene (single precision), with both meshes shifted
+    by the other mesh's centre so that far-from-origin data keeps its digits.
+
+    Parameters
+    ----------
+    vertices : (V, 3) array
+    other_vertices : (W, 3) array
+    other_triangles : (F, 3) int array
+
+    Returns
+    -------
+    (V,) float array
+    """
+    import open3d as o3d
+
+    from o3drbf.mesh.arrays import raycasting_scene
+
+    ov = np.asarray(other_vertices, dtype=float)
+    origin = 0.5 * (ov.min(axis=0) + ov.max(axis=0))
+    scene = raycasting_scene(ov - origin, np.asarray(other_triangles))
+    query = o3d.core.Tensor(np.ascontiguousarray(np.asarray(vertices, dtype=float) - origin, dtype=np.float32))
+    return scene.compute_distance(query).numpy().astype(float)
