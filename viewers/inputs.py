@@ -1,4 +1,4 @@
-"""What ``o3drbf view`` shows, read from disk: points (and cameras), or a saved model.
+"""What ``o3drbf view`` shows, read from disk: points (and cameras), a saved model, or a finished mesh.
 
 No PyVista here: everything is arrays, so the loading rules are testable
 without a display.
@@ -6,15 +6,20 @@ without a display.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["ViewInput", "load_view_input", "model_constraints"]
+__all__ = ["ViewInput", "load_view_input", "model_constraints", "has_faces", "read_mesh_fields"]
+
+from o3drbf.io.files import MESH_FORMATS, POINT_FORMATS
 
 #: Suffix of a saved implicit model (``o3drbf reconstruct --save-model``).
 MODEL_SUFFIX = ".npz"
+
+#: PLY vertex properties that are geometry or colour, not a field to colour by.
+_GEOMETRY_PROPERTIES = ("positions", "normals", "colors")
 
 
 @dataclass
@@ -37,6 +42,13 @@ class ViewInput:
         A saved model: no refit possible, only re-extraction.
     normals_estimated : bool
         True when ``normals`` were estimated by Open3D here.
+    mesh : (vertices (V, 3), triangles (F, 3)) or None
+        A finished mesh, shown as it is (no points, no refit).
+    vertex_fields : dict of str -> (V,) array
+        The mesh's per-vertex scalar fields (PLY vertex properties beyond
+        x, y, z, normals and colours, e.g. ``confidence``).
+    vertex_colors : (V, 3) array in [0, 1] or None
+    vertex_normals : (V, 3) array or None
     """
 
     source: str
@@ -46,15 +58,26 @@ class ViewInput:
     point_camera: np.ndarray | None = None
     model: object = None
     normals_estimated: bool = False
+    mesh: tuple | None = None
+    vertex_fields: dict = field(default_factory=dict)
+    vertex_colors: np.ndarray | None = None
+    vertex_normals: np.ndarray | None = None
 
     @property
     def is_model(self) -> bool:
         return self.model is not None
 
+    @property
+    def is_mesh(self) -> bool:
+        return self.mesh is not None
+
     def bounds(self) -> np.ndarray:
         """(2, 3) box around everything in the data's coordinates."""
         if self.points is not None:
             return np.array([self.points.min(axis=0), self.points.max(axis=0)])
+        if self.mesh is not None:
+            v = self.mesh[0]
+            return np.array([v.min(axis=0), v.max(axis=0)])
         box = self.model.metadata.get("bounds")  # the data's box, padded, saved by reconstruct
         if box is not None and np.asarray(box, dtype=float).shape == (2, 3):
             return np.asarray(box, dtype=float)
@@ -72,17 +95,21 @@ class ViewInput:
         return out
 
 
-def load_view_input(path: str, cameras: str | None = None) -> ViewInput:
-    """Read INPUT (and ``--cameras FILE``) the way ``o3drbf reconstruct`` does.
+def load_view_input(path: str, cameras: str | None = None, refit: bool = False) -> ViewInput:
+    """Read INPUT (and ``--cameras FILE``) the way ``o3drbf reconstruct`` does; a mesh as it is.
 
     Parameters
     ----------
     path : str
         A point cloud (PLY, PCD, XYZ, ...), a file or folder holding points
         and cameras (scan JSON, Stanford ``.conf``, COLMAP folder,
-        ``bundle.out``), or a saved model ``.npz``.
+        ``bundle.out``), a saved model ``.npz``, or a mesh with faces (PLY,
+        OBJ, STL, OFF, glTF: see :func:`has_faces`).
     cameras : str, optional
         A camera file for a plain point cloud.
+    refit : bool
+        Take a mesh's vertices as a point cloud to fit (``--refit``)
+        instead of showing the mesh as it is.
 
     Returns
     -------
@@ -106,6 +133,12 @@ def load_view_input(path: str, cameras: str | None = None) -> ViewInput:
         from o3drbf.surface import ImplicitSurface
 
         return ViewInput(source=str(p), model=ImplicitSurface.load(p))
+    if not refit and has_faces(p):
+        if cameras:
+            raise ValueError(f"{p} is a mesh, shown as it is; --cameras needs a point cloud as INPUT (or add --refit)")
+        return read_mesh_fields(p)
+    if refit and p.suffix.lower() in MESH_FORMATS and p.suffix.lower() not in POINT_FORMATS:
+        return _vertices_as_points(p)
     data = read_input(p, cameras=cameras or None)
     points, normals, cams, point_camera = data.points, data.normals, data.cameras, data.point_camera
     estimated = False
@@ -149,3 +182,79 @@ def model_constraints(surface) -> dict[str, np.ndarray]:
         return parts
     f = surface.evaluate(centres)
     return {"surface": centres[f > -0.5], "exterior": centres[f <= -0.5], "sphere": np.zeros((0, 3))}
+
+
+def has_faces(path) -> bool:
+    """Whether ``path`` is a mesh with at least one face.
+
+    A ``.ply`` is a mesh when its header announces ``element face N`` with
+    N > 0 (read from the header only); ``.obj``, ``.stl``, ``.off`` and
+    ``.gltf`` files are read with Open3D and must hold triangles.  Other
+    files (point formats, folders) are not meshes.
+    """
+    p = Path(path)
+    suffix = p.suffix.lower()
+    if not p.is_file() or suffix not in MESH_FORMATS:
+        return False
+    if suffix == ".ply":
+        import re
+
+        with open(p, "rb") as fh:
+            head = fh.read(65536)
+        end = head.find(b"end_header")
+        header = head[: end if end >= 0 else len(head)].decode("ascii", errors="replace")
+        m = re.search(r"^element\s+face\s+(\d+)", header, flags=re.MULTILINE)
+        return bool(m) and int(m.group(1)) > 0
+    import open3d as o3d
+
+    return len(o3d.io.read_triangle_mesh(str(p)).triangles) > 0
+
+
+def read_mesh_fields(path) -> ViewInput:
+    """A mesh file as it is: vertices, triangles, vertex normals and colours, and every per-vertex scalar field.
+
+    Scalar fields are the PLY vertex properties other than x, y, z,
+    normals and colours (read with Open3D's tensor reader, which keeps
+    them); other formats have none.
+
+    Raises
+    ------
+    ValueError
+        No triangles, bad indices or non-finite vertices (see
+        :func:`o3drbf.mesh.arrays.mesh_arrays`), or fields whose length is
+        not the vertex count.
+    """
+    import open3d as o3d
+
+    from o3drbf.mesh.arrays import mesh_arrays
+
+    p = Path(path)
+    mesh = o3d.io.read_triangle_mesh(str(p))
+    verts, tris = mesh_arrays(mesh, name=str(p))
+    fields: dict[str, np.ndarray] = {}
+    if p.suffix.lower() == ".ply":
+        attrs = o3d.t.io.read_point_cloud(str(p)).point
+        for key in attrs:  # TensorMap iterates over attribute names
+            if key in _GEOMETRY_PROPERTIES:
+                continue
+            values = attrs[key].numpy()
+            if values.ndim == 2 and values.shape[1] == 1:
+                values = values[:, 0]
+            if values.ndim != 1:
+                continue  # a vector property: not a scalar field
+            if len(values) != len(verts):
+                raise ValueError(f"{p}: vertex property {key!r} has {len(values)} values for {len(verts)} vertices; fix the file")
+            fields[key] = values.astype(float)
+    colors = np.asarray(mesh.vertex_colors, dtype=float) if mesh.has_vertex_colors() else None
+    normals = np.asarray(mesh.vertex_normals, dtype=float) if mesh.has_vertex_normals() else None
+    return ViewInput(source=str(p), mesh=(verts, tris), vertex_fields=fields, vertex_colors=colors, vertex_normals=normals)
+
+
+def _vertices_as_points(path: Path) -> ViewInput:
+    """A mesh file's vertices as a point cloud to fit (``--refit`` on an .obj, .stl, .off or .gltf)."""
+    from o3drbf.pipeline import estimate_normals
+
+    data = read_mesh_fields(path)
+    points = data.mesh[0]
+    normals = data.vertex_normals if data.vertex_normals is not None else estimate_normals(points)
+    return ViewInput(source=str(path), points=points, normals=normals, normals_estimated=data.vertex_normals is None)
