@@ -25,6 +25,7 @@ pv = pytest.importorskip("pyvista")
 from o3drbf.viewers.app import COLORS, SLIDERS, ViewerApp, parse_script  # noqa: E402
 from o3drbf.viewers.geometry import camera_frusta, view_up, wind_like_normals  # noqa: E402
 from o3drbf.viewers.inputs import load_view_input, model_constraints  # noqa: E402
+from o3drbf.viewers.keys import press_key  # noqa: E402
 from o3drbf.viewers.refit import FitParams, Refitter, pick_values  # noqa: E402
 
 SMALL = ["--resolution", "24", "--surface-count", "300", "--poisson-depth", "6", "--window-size", "800", "400"]
@@ -343,3 +344,288 @@ def test_sample_scan_for_the_readme_picture(tmp_path):
 
     assert np.abs(TorusStack(3).signed_distance(data.points)).max() < 0.05
     assert sample_main([str(tmp_path / "tori.txt")]) == 2
+
+
+# ---------------------------------------------------------------------------
+# keys: the viewer's keys do only the viewer's action (VTK's own handlers are off)
+
+
+def _shot(plotter) -> np.ndarray:
+    """The window as it is now (PyVista's screenshot renders only the first time)."""
+    plotter.render()
+    return plotter.screenshot()
+
+
+def _magenta(image: np.ndarray) -> int:
+    """Pixels of VTK's red/blue stereo tint (strong red and blue, no green)."""
+    rgb = image[..., :3].astype(int)
+    return int(((rgb[..., 0] > 150) & (rgb[..., 1] < 60) & (rgb[..., 2] > 150)).sum())
+
+
+def _pure_red(image: np.ndarray) -> int:
+    """Pixels of VTK's pick highlight box (1, 0, 0)."""
+    rgb = image[..., :3].astype(int)
+    return int(((rgb[..., 0] == 255) & (rgb[..., 1] == 0) & (rgb[..., 2] == 0)).sum())
+
+
+def test_vtk_handles_3_and_p_itself_on_a_plain_plotter():
+    """The control for the tests below: the simulated presses do reach VTK's own handlers."""
+    plain = pv.Plotter(off_screen=True, window_size=(300, 200))
+    try:
+        plain.add_mesh(pv.Sphere(), color="white")
+        plain.set_background("white")
+        plain.iren.interactor.GetInteractorStyle().SetCurrentRenderer(plain.renderer)
+        press_key(plain, "p", (150, 100))
+        assert _pure_red(_shot(plain)) > 50  # VTK's red pick box
+        press_key(plain, "3")
+        assert plain.render_window.GetStereoRender() == 1
+        assert _magenta(_shot(plain)) > 0.5 * 300 * 200  # the whole window tinted
+    finally:
+        plain.close()
+
+
+def test_a_layer_key_toggles_only_its_layer(fitted):
+    def shot():
+        return _shot(fitted.plotter)
+
+    before = dict(fitted.visible)
+    camera = fitted.plotter.camera_position
+    green = _colour_pixels(shot(), COLORS["exterior"], x_from=170)
+    fitted.on_key("3")  # exterior constraints; VTK's own "3" would switch on red/blue stereo
+    try:
+        assert {k for k in before if before[k] != fitted.visible[k]} == {"exterior"}
+        assert fitted.plotter.render_window.GetStereoRender() == 0
+        image = shot()
+        assert _magenta(image) == 0
+        assert green > 20 and _colour_pixels(image, COLORS["exterior"], x_from=170) == 0
+        assert fitted.plotter.camera_position == camera
+    finally:
+        fitted.on_key("3")
+    assert fitted.visible == before
+    with pytest.raises(ValueError, match="no action on key"):
+        fitted.on_key("e")
+
+
+def test_p_picks_without_vtk_highlight_box(fitted):
+    ren = fitted.plotter.renderers[fitted.plotter.renderers.loc_to_index((0, fitted.MAIN))]
+    verts = np.asarray(fitted.result.mesh.vertices)
+    front = verts[np.argmin(np.linalg.norm(verts - np.array(fitted.plotter.camera.position), axis=1))]
+    ren.SetWorldPoint(*front, 1.0)
+    ren.WorldToDisplay()
+    x, y, _ = ren.GetDisplayPoint()
+    fitted.plotter.iren.interactor.GetInteractorStyle().SetCurrentRenderer(ren)  # as after a click: VTK's "p" would box
+    fitted.on_key("p", (int(round(x)), int(round(y))))
+    text = fitted.pick_actor.GetInput()
+    picked = np.array([float(v) for v in re.search(r"picked \(([^)]*)\)", text).group(1).split(",")])
+    assert np.linalg.norm(picked - front) < 0.05  # the surface point under the mouse
+    assert _pure_red(_shot(fitted.plotter)) == 0
+
+
+# ---------------------------------------------------------------------------
+# readable controls: no text overlaps another text or a widget
+
+
+def _control_boxes(app):
+    """Pixel boxes (x0, y0, x1, y1) of every text in the control column, each rendered alone, and the widget pixels.
+
+    Returns (boxes, widget_mask, width): the texts' boxes from screenshots
+    with only that text shown, and where the sliders / buttons draw with
+    no text shown.
+    """
+    from vtkmodules.vtkRenderingCore import vtkTextActor
+
+    p = app.plotter
+    ren = p.renderers[p.renderers.loc_to_index((0, app.CONTROLS))]
+    width = int(round(p.window_size[0] * ren.GetViewport()[2]))
+    props = [a for a in ren.GetViewProps()]
+    texts = [a for a in props if isinstance(a, vtkTextActor) and a.GetVisibility() and (a.GetInput() or "").strip()]
+    text_ids = {id(a) for a in texts}  # by identity: PyVista's Text compares by value
+    others = [a for a in props if id(a) not in text_ids and a.GetVisibility()]
+    background = np.array(ren.GetBackground()) * 255
+
+    def drawn(image):
+        rgb = image[:, :width, :3].astype(float)
+        return np.abs(rgb - background).max(axis=2) > 8
+
+    for a in texts:
+        a.SetVisibility(0)
+    widgets = drawn(_shot(p))
+    for a in others:
+        a.SetVisibility(0)
+    boxes = {}
+    for a in texts:
+        a.SetVisibility(1)
+        rows, cols = np.nonzero(drawn(_shot(p)))
+        a.SetVisibility(0)
+        boxes[a.GetInput()] = (cols.min(), rows.min(), cols.max(), rows.max())
+    for a in texts + others:
+        a.SetVisibility(1)
+    return boxes, widgets, width
+
+
+def _assert_readable(app):
+    boxes, widgets, width = _control_boxes(app)
+    items = list(boxes.items())
+    for i, (text, (x0, y0, x1, y1)) in enumerate(items):
+        assert 0 < x0 and x1 < width - 1 and 0 < y0 and y1 < widgets.shape[0] - 1, f"{text!r} runs off the control column"
+        assert not widgets[y0 : y1 + 1, x0 : x1 + 1].any(), f"{text!r} overlaps a slider or button"
+        for other, (u0, v0, u1, v1) in items[i + 1 :]:
+            assert x1 < u0 or u1 < x0 or y1 < v0 or v1 < y0, f"{text!r} overlaps {other!r}"
+    return boxes
+
+
+def test_slider_labels_do_not_overlap(fitted):
+    for w in fitted.sliders.values():  # all slider text is the viewer's own (VTK's label is off)
+        rep = w.GetRepresentation()
+        assert not rep.GetShowSliderLabel() and not (rep.GetTitleText() or "").strip()
+    boxes = _assert_readable(fitted)
+    labels = [fitted.slider_label(n) for n in SLIDERS]
+    assert set(labels) <= set(boxes)
+    # The labels show the values the fit used.
+    assert f"delta = {fitted.result.params.delta:.3g}" in labels
+    assert f"lambda surface = {fitted.result.params.lambda_surface:.2g}" in labels
+
+
+# ---------------------------------------------------------------------------
+# point layers: capped, deterministic, in both panels
+
+
+def test_point_layers_are_capped_deterministically_in_both_panels(scan):
+    from o3drbf.options import VIEWER_DISPLAY
+
+    data = load_view_input(str(scan / "scan.json"))
+
+    def drawn(app, col):
+        p = app.plotter
+        actor = p.renderers[p.renderers.loc_to_index((0, col))].actors[f"points{col}"]
+        return np.asarray(pv.wrap(actor.GetMapper().GetInput()).points), actor
+
+    runs = []
+    for _ in range(2):
+        app = ViewerApp.offscreen(data, PARAMS, window_size=(800, 400), max_points=200)
+        try:
+            main_pts, actor = drawn(app, app.MAIN)
+            poisson_pts, _ = drawn(app, app.POISSON)
+            assert actor.GetProperty().GetPointSize() == VIEWER_DISPLAY["point_size"]
+            runs.append(main_pts)
+        finally:
+            app.close()
+        assert len(main_pts) == 200 and np.array_equal(main_pts, poisson_pts)
+    assert np.array_equal(runs[0], runs[1])
+    # Input points, all different, spread over the whole input (not its first rows).
+    index = {tuple(p): i for i, p in enumerate(data.points)}
+    rows = [index[tuple(p)] for p in runs[0]]
+    assert len(set(rows)) == 200 and max(rows) > 800
+    app = ViewerApp.offscreen(data, PARAMS, window_size=(800, 400))
+    try:
+        assert len(drawn(app, app.MAIN)[0]) == len(data.points)  # below the cap: every point
+    finally:
+        app.close()
+    assert VIEWER_DISPLAY["max_points"] == 50_000
+
+
+# ---------------------------------------------------------------------------
+# a finished mesh: shown as it is
+
+
+def _write_ply_with_field(path, vertices, triangles, name, values):
+    """A binary PLY with faces and one extra float vertex property (written here, independently of any reader)."""
+    header = (
+        f"ply\nformat binary_little_endian 1.0\nelement vertex {len(vertices)}\n"
+        f"property double x\nproperty double y\nproperty double z\nproperty float {name}\n"
+        f"element face {len(triangles)}\nproperty list uchar int vertex_indices\nend_header\n"
+    )
+    rec = np.zeros(len(vertices), dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("f", "<f4")])
+    rec["x"], rec["y"], rec["z"] = np.asarray(vertices).T
+    rec["f"] = values
+    faces = np.zeros(len(triangles), dtype=[("n", "u1"), ("i", "<i4", (3,))])
+    faces["n"], faces["i"] = 3, triangles
+    path.write_bytes(header.encode() + rec.tobytes() + faces.tobytes())
+    return path
+
+
+@pytest.fixture(scope="module")
+def sphere_ply(tmp_path_factory):
+    sphere = o3d.geometry.TriangleMesh.create_sphere(0.5, 12)
+    v, t = np.asarray(sphere.vertices), np.asarray(sphere.triangles)
+    path = _write_ply_with_field(tmp_path_factory.mktemp("mesh") / "sphere.ply", v, t, "confidence", v[:, 2] + 1.0)
+    return path, v, t
+
+
+def test_a_mesh_is_shown_as_it_is_coloured_by_a_field(sphere_ply, tmp_path, capsys, monkeypatch):
+    from o3drbf.viewers.meshview import MeshViewerApp
+
+    path, v, t = sphere_ply
+    monkeypatch.setattr(ViewerApp, "__init__", lambda *a, **k: pytest.fail("a mesh must not go to the fitting viewer"))
+    out = tmp_path / "mesh.png"
+    assert main(["view", str(path), "--screenshot", str(out), "--color-by", "confidence", "--window-size", "800", "400"]) == 0
+    line = capsys.readouterr().out
+    assert f"mesh {len(t)} triangles, {len(v)} vertices, shown as it is (no refit)" in line
+    assert "colour confidence 0.5 .. 1.5" in line  # z + 1 on a sphere of radius 0.5
+    data = load_view_input(str(path))
+    assert data.is_mesh and data.points is None
+    app = MeshViewerApp.offscreen(data, window_size=(800, 400), color_by="confidence")
+    try:
+        poly = pv.wrap(app.actors["mesh1"].GetMapper().GetInput())
+        assert np.allclose(np.asarray(poly.points), v) and poly.n_cells == len(t)
+        assert np.allclose(np.asarray(poly.point_data["confidence"]), v[:, 2] + 1.0, atol=1e-6)
+        assert app.actors["mesh1"].GetMapper().GetScalarRange() == pytest.approx((0.5, 1.5), abs=1e-6)
+        # The picture: viridis runs from purple (low z) to yellow (high z), so the top of the sphere is redder than the bottom.
+        image = _shot(app.plotter)[:, 170:, :3].astype(int)
+        mesh_px = np.abs(image - 255).max(axis=2) > 30
+        rows = np.nonzero(mesh_px.any(axis=1))[0]
+        top, bottom = rows[: len(rows) // 4], rows[-len(rows) // 4 :]
+        red_minus_blue = image[..., 0] - image[..., 2]
+        assert red_minus_blue[top][mesh_px[top]].mean() > red_minus_blue[bottom][mesh_px[bottom]].mean() + 50
+        _assert_readable(app)
+        before = dict(app.visible)
+        press_key(app.plotter, "2")  # edges; VTK's "2" does nothing, "3" would be stereo
+        assert {k for k in before if before[k] != app.visible[k]} == {"edges"} and app.actors["edges1"].GetVisibility()
+        press_key(app.plotter, "3")
+        assert app.plotter.render_window.GetStereoRender() == 0
+    finally:
+        app.close()
+    # --refit takes the vertices as points, the old behaviour.
+    pts = load_view_input(str(path), refit=True)
+    assert not pts.is_mesh and np.allclose(pts.points, v)
+
+
+def test_mesh_options_are_checked(sphere_ply, scan, tmp_path, capsys):
+    path, _, _ = sphere_ply
+    png = str(tmp_path / "o.png")
+    assert main(["view", str(path), "--screenshot", png, "--color-by", "sigma"]) == 2
+    err = capsys.readouterr().err
+    assert "no per-vertex field 'sigma'" in err and "confidence" in err and "x, y, z" in err
+    assert main(["view", str(scan / "points.ply"), "--screenshot", png, "--color-by", "z"]) == 2
+    assert "needs a mesh with faces" in capsys.readouterr().err
+    assert main(["view", str(path), "--screenshot", png, "--distance-to", str(scan / "points.ply")]) == 2
+    assert "has no faces" in capsys.readouterr().err
+    assert main(["view", str(path), "--screenshot", png, "--distance-to", str(path), "--color-by", "confidence"]) == 2
+    assert "drop --color-by" in capsys.readouterr().err
+
+
+def test_distance_to_another_mesh_colours_both_panels_with_one_range(tmp_path):
+    from o3drbf.viewers.meshview import MeshViewerApp
+
+    sphere = o3d.geometry.TriangleMesh.create_sphere(0.5, 12)
+    box = o3d.geometry.TriangleMesh.create_box(2.0, 2.0, 2.0).translate((-1.0, -1.0, -1.0)).subdivide_midpoint(3)
+    o3d.io.write_triangle_mesh(str(tmp_path / "sphere.ply"), sphere)
+    o3d.io.write_triangle_mesh(str(tmp_path / "box.ply"), box)
+    app = MeshViewerApp.offscreen(load_view_input(str(tmp_path / "sphere.ply")), window_size=(800, 400), other=load_view_input(str(tmp_path / "box.ply")))
+    try:
+        a = np.asarray(sphere.vertices)
+        b = np.asarray(box.vertices)
+        d_ab = app.data.vertex_fields["distance"]
+        d_ba = app.other.vertex_fields["distance"]
+        # Truth: inside the box [-1, 1]^3 the nearest face is 1 - max|x_i| away.
+        assert np.allclose(d_ab, 1.0 - np.abs(a).max(axis=1), atol=1e-6)
+        # The sphere mesh is inscribed in the sphere of radius 0.5: |b| - 0.5 within its flatness.
+        assert np.all(d_ba >= np.linalg.norm(b, axis=1) - 0.5 - 1e-6) and np.allclose(d_ba, np.linalg.norm(b, axis=1) - 0.5, atol=0.02)
+        ranges = [app.actors[f"mesh{c}"].GetMapper().GetScalarRange() for c, _ in app.panels()]
+        assert ranges[0] == ranges[1] == pytest.approx((min(d_ab.min(), d_ba.min()), max(d_ab.max(), d_ba.max())), rel=1e-6)
+        p = app.plotter
+        cams = [p.renderers[p.renderers.loc_to_index((0, c))].GetActiveCamera() for c, _ in app.panels()]
+        assert cams[0] is cams[1]  # one camera: both panels move together
+        _assert_readable(app)
+    finally:
+        app.close()

@@ -37,7 +37,9 @@ from pathlib import Path
 
 import numpy as np
 
-from o3drbf.viewers.geometry import camera_frusta, view_direction, view_up, wind_like_normals
+from o3drbf.options import VIEWER_DISPLAY
+from o3drbf.viewers.geometry import camera_frusta, look_at, subsample, view_up, wind_like_normals
+from o3drbf.viewers.keys import own_keys, pick_under_mouse, press_key
 from o3drbf.viewers.inputs import ViewInput, load_view_input, model_constraints
 from o3drbf.viewers.refit import FitParams, FitResult, Refitter, pick_values
 
@@ -46,7 +48,7 @@ __all__ = ["add_view_arguments", "main_view", "ViewerApp", "COLORS", "LAYERS", "
 #: Layer colours (hex).  Surface constraints blue and exterior constraints
 #: green, as in the paper's Fig. 8.
 COLORS = {
-    "points": "#6b6b6b",
+    "points": VIEWER_DISPLAY["point_color"],
     "surface": "#1f4fd8",
     "exterior": "#12a03c",
     "sphere": "#8fd19e",
@@ -68,14 +70,16 @@ LAYERS = (
     ("6", "mesh", "iso-surface", True),
 )
 
-#: Sliders: name -> (title, (low, high) in slider units, slider format).
-#: lambda_surface moves in log10 units.
+#: Sliders: name -> (title, (low, high) in slider units, value format).
+#: lambda_surface moves in log10 units; its label shows 10**position.  The
+#: label ("title = value") is the viewer's own text above the slider, not
+#: VTK's (whose value label sits above and title below, into the next slider).
 SLIDERS = {
-    "lambda_surface": ("lambda surface (log10)", (-6.0, 0.0), "%.1f"),
-    "delta": ("delta", (1.0, 60.0), "%.1f"),
-    "tau": ("tau", (0.001, 0.05), "%.3f"),
-    "level": ("iso-level", (-0.01, 0.01), "%.1e"),  # range follows f's scale after each fit
-    "resolution": ("grid resolution", (16.0, 256.0), "%.0f"),
+    "lambda_surface": ("lambda surface", (-6.0, 0.0), ".2g"),
+    "delta": ("delta", (1.0, 60.0), ".3g"),
+    "tau": ("tau", (0.001, 0.05), ".3g"),
+    "level": ("iso-level", (-0.01, 0.01), ".2e"),  # range follows f's scale after each fit
+    "resolution": ("grid resolution", (16.0, 256.0), ".0f"),
 }
 _REFIT_SLIDERS = ("lambda_surface", "delta", "tau")
 
@@ -98,6 +102,10 @@ def add_view_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPars
         "(o3drbf scan .json, Stanford .conf, COLMAP folder, bundle.out), or a saved model .npz",
     )
     parser.add_argument("--cameras", metavar="FILE", help="cameras for a plain point cloud (exterior constraints go toward them)")
+    g = parser.add_argument_group("a finished mesh (INPUT with faces: shown as it is, no refit)")
+    g.add_argument("--color-by", metavar="FIELD", default=None, help="colour the mesh by a per-vertex field: a PLY vertex property (e.g. confidence, distance) or x, y, z")
+    g.add_argument("--distance-to", metavar="OTHER", default=None, help="colour the mesh by its distance to the mesh OTHER, shown beside it coloured by its distance to the mesh (same camera, same colour range)")
+    g.add_argument("--refit", action="store_true", help="take a mesh's vertices as points and fit them (instead of showing the mesh)")
     parser.add_argument("--screenshot", metavar="PNG", help="render offscreen to this .png and exit (no display needed)")
     parser.add_argument("--no-poisson", action="store_true", help="no Open3D Poisson panel")
     parser.add_argument("--poisson-depth", type=int, default=8, help="Open3D Poisson octree depth, 1..12 (default %(default)s)")
@@ -123,6 +131,7 @@ def add_view_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPars
     g.add_argument("--save-prefix", default="o3drbf_view", help="keys m / k write PREFIX_mesh.ply / PREFIX.png (default %(default)s)")
     g.add_argument("--show-sphere", action="store_true", help="show the sphere constraints at start (key 4)")
     g.add_argument("--hide", nargs="+", default=[], metavar="LAYER", choices=[name for _, name, _, _ in LAYERS], help="layers hidden at start: " + ", ".join(name for _, name, _, _ in LAYERS))
+    g.add_argument("--max-points", type=int, default=VIEWER_DISPLAY["max_points"], help="draw at most this many points per point layer (a seeded subsample; default %(default)s)")
     g.add_argument("--zoom", type=float, default=1.0, help="start view: 1 fits the data, 0.3 also shows cameras further out (default %(default)s)")
     g.add_argument("--up", default="auto", choices=["auto", "x", "y", "z"], help="the data's up axis; auto: the cameras' up, else z (default %(default)s)")
     # Scripted session for tests: "set level 0.1; wait; print; quit" (see parse_script).
@@ -164,12 +173,19 @@ def main_view(args: argparse.Namespace) -> int:
     w, h = args.window_size
     if not 0.01 <= args.zoom <= 100:
         raise ValueError(f"--zoom must be in 0.01..100, got {args.zoom}")
+    if args.max_points < 1:
+        raise ValueError(f"--max-points must be at least 1, got {args.max_points}")
     if w < 200 or h < 150:
         raise ValueError(f"--window-size must be at least 200 150, got {w} {h}")
     script = parse_script(args.script) if args.script else None
     shot = _check_png(args.screenshot, [args.input, args.cameras]) if args.screenshot else None
-    data = load_view_input(args.input, args.cameras)
-    options = dict(poisson=not args.no_poisson, poisson_depth=depth, window_size=(w, h), save_prefix=args.save_prefix, show_sphere=args.show_sphere, hide=tuple(args.hide), up=args.up, zoom=args.zoom)
+    data = load_view_input(args.input, args.cameras, refit=args.refit)
+    if data.is_mesh:
+        return _view_mesh(args, data, shot)
+    for flag, value in (("--color-by", args.color_by), ("--distance-to", args.distance_to)):
+        if value is not None:
+            raise ValueError(f"{flag} needs a mesh with faces as INPUT; {args.input} is {'fitted (--refit)' if args.refit else 'not a mesh'}")
+    options = dict(poisson=not args.no_poisson, poisson_depth=depth, window_size=(w, h), save_prefix=args.save_prefix, show_sphere=args.show_sphere, hide=tuple(args.hide), up=args.up, zoom=args.zoom, max_points=args.max_points)
     if shot is not None:
         app = ViewerApp.offscreen(data, params, **options)
         try:
@@ -183,6 +199,35 @@ def main_view(args: argparse.Namespace) -> int:
         raise RuntimeError("no display for the interactive viewer; use --screenshot OUT.png (offscreen) or run it under xvfb-run")
     app = ViewerApp.interactive(data, params, script=script, **options)
     return app.run()
+
+
+def _view_mesh(args: argparse.Namespace, data: ViewInput, shot: Path | None) -> int:
+    """``o3drbf view MESH``: the mesh as it is (:mod:`o3drbf.viewers.meshview`)."""
+    from o3drbf.viewers.inputs import read_mesh_fields, has_faces
+    from o3drbf.viewers.meshview import MESH_LAYERS, MeshViewerApp
+
+    other = None
+    if args.distance_to is not None:
+        if not Path(args.distance_to).is_file():
+            raise FileNotFoundError(f"--distance-to: mesh not found: {args.distance_to}")
+        if not has_faces(args.distance_to):
+            raise ValueError(f"--distance-to {args.distance_to} has no faces; give a mesh file (.ply, .obj, .stl, .off, .gltf)")
+        other = read_mesh_fields(args.distance_to)
+    if shot is not None and other is not None:
+        shot = _check_png(str(shot), [args.input, args.distance_to])
+    hide = tuple(h for h in args.hide if h in {name for _, name, _, _ in MESH_LAYERS})
+    options = dict(color_by=args.color_by, other=other, up=args.up, zoom=args.zoom, save_prefix=args.save_prefix, hide=hide, window_size=tuple(args.window_size))
+    if shot is not None:
+        app = MeshViewerApp.offscreen(data, **options)
+        try:
+            app.save_screenshot(shot)
+            print(f"o3drbf view: {app.describe()}; wrote {shot}")
+        finally:
+            app.close()
+        return 0
+    if sys.platform.startswith("linux") and not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
+        raise RuntimeError("no display for the interactive viewer; use --screenshot OUT.png (offscreen) or run it under xvfb-run")
+    return MeshViewerApp.interactive(data, **options).run()
 
 
 # ----------------------------------------------------------------------------
@@ -275,11 +320,16 @@ class ViewerApp:
         Start view: 1 fits the data; below 1 shows more around it (the cameras).
     script : list of steps, optional
         From :func:`parse_script`, run by the window timer.
+    max_points : int
+        Each point layer draws at most this many points (a seeded
+        subsample; :data:`o3drbf.options.VIEWER_DISPLAY`).
     """
 
-    def __init__(self, data: ViewInput, params: FitParams, plotter, poisson: bool = True, poisson_depth: int = 8, save_prefix: str = "o3drbf_view", show_sphere: bool = False, hide=(), up: str = "auto", zoom: float = 1.0, script=None):
+    def __init__(self, data: ViewInput, params: FitParams, plotter, poisson: bool = True, poisson_depth: int = 8, save_prefix: str = "o3drbf_view", show_sphere: bool = False, hide=(), up: str = "auto", zoom: float = 1.0, script=None, max_points: int = VIEWER_DISPLAY["max_points"]):
         self.data = data
         self.plotter = plotter
+        self.max_points = int(max_points)
+        subsample(1, self.max_points)  # refuses a cap below 1 before any work
         self.poisson_enabled = bool(poisson) and not data.is_model
         self.poisson_depth = poisson_depth
         self.save_prefix = save_prefix
@@ -311,6 +361,8 @@ class ViewerApp:
         self._building = True  # PyVista calls each slider's callback once as it adds it: not a user action
         self._build()
         self._building = False
+        own_keys(plotter, self.key_bindings())
+        plotter.enable_surface_point_picking(callback=lambda point: self._guard(self.on_pick, point), show_message=False, show_point=False, left_clicking=False)
 
     # -- construction -----------------------------------------------------------------
 
@@ -356,14 +408,13 @@ class ViewerApp:
         d = self.data
         p.subplot(0, self.CONTROLS)
         p.set_background(COLORS["controls"], all_renderers=False)
-        title = f"o3drbf view: {Path(d.source).name}" + ("\n(saved model: no refit)" if d.is_model else "")
-        self.title_actor = p.add_text(title, position=(0.04, 0.955), viewport=True, font_size=8, color="black", name="title")
+        name = Path(d.source).name
+        title = f"o3drbf view\n{name if len(name) <= 24 else name[:21] + '...'}" + ("\nsaved model: no refit" if d.is_model else "")
+        self.title_actor = p.add_text(title, position=(0.04, 0.985), viewport=True, font_size=7, color="black", name="title")
+        self.title_actor.GetTextProperty().SetVerticalJustificationToTop()  # more lines grow downward, not off the top
         p.subplot(0, self.MAIN)
         p.set_background(COLORS["background"], all_renderers=False)
-        if d.points is not None:
-            self.actors["points"] = p.add_points(
-                np.asarray(d.points), color=COLORS["points"], point_size=2.0, render_points_as_spheres=False, lighting=False, name="points", reset_camera=False
-            )
+        self._add_input_points(self.MAIN)
         self._add_cameras(self.MAIN)
         p.add_text("o3drbf", position=(0.02, 0.955), viewport=True, font_size=9, color="black", name="main_title")
         self.status_actor = p.add_text("", position=(0.2, 0.955), viewport=True, font_size=8, color="#b00000", name="status")
@@ -373,6 +424,7 @@ class ViewerApp:
         if self.poisson_enabled:
             p.subplot(0, self.POISSON)
             p.set_background(COLORS["background"], all_renderers=False)
+            self._add_input_points(self.POISSON)  # the same layers in both panels: comparable
             self._add_cameras(self.POISSON)
             self.poisson_title = p.add_text(f"Open3D Poisson (depth {self.poisson_depth})", position=(0.02, 0.955), viewport=True, font_size=9, color="black", name="poisson_title")
             self._view_box()
@@ -384,12 +436,22 @@ class ViewerApp:
 
     def _view_box(self) -> None:
         """Look at the data from the side and above, the up axis up, the data filling most of the panel."""
-        lo, hi = self.data.bounds()
-        c = (lo + hi) / 2
-        radius = 0.5 * float(np.linalg.norm(hi - lo)) or 1.0
-        half_angle = np.radians(self.plotter.camera.view_angle / 2)
-        eye = c + radius / np.sin(half_angle) / (0.75 * self.zoom) * view_direction(self.up)
-        self.plotter.camera_position = [tuple(eye), tuple(c), tuple(self.up)]
+        self.plotter.camera_position = look_at(self.data.bounds(), self.up, self.plotter.camera.view_angle, self.zoom)
+
+    def shown(self, points) -> np.ndarray:
+        """The drawn part of a point layer: at most ``max_points``, a seeded subsample (the same every time)."""
+        pts = np.asarray(points)
+        return pts[subsample(len(pts), self.max_points, seed=0)]
+
+    def _add_input_points(self, col: int) -> None:
+        """The input points (subsampled, light and small, so the surface stays visible) in one panel."""
+        if self.data.points is None:
+            return
+        self.plotter.add_points(
+            self.shown(self.data.points), color=COLORS["points"], point_size=VIEWER_DISPLAY["point_size"],
+            render_points_as_spheres=False, lighting=False, name=f"points{col}", reset_camera=False, pickable=False,
+        )
+        self.actors.setdefault("points_names", []).append((col, f"points{col}"))
 
     def _frustum_depth(self) -> float:
         return 0.2 * self.size
@@ -408,11 +470,17 @@ class ViewerApp:
             names.append(f"centers{col}")
         self.actors.setdefault("cameras_names", []).extend((col, n) for n in names)
 
+    #: Slider geometry in the control column (normalized viewport units):
+    #: the tubes' heights, the label's offset above its tube, the caps' height.
+    SLIDER_ROWS = (0.84, 0.40)
+    SLIDER_LABEL_OFFSET = 0.03
+    SLIDER_CAP = 0.03
+
     def _add_sliders(self) -> None:
-        """The five sliders, stacked in the control column."""
+        """The five sliders, stacked in the control column, each labelled "title = value" above its tube."""
         p = self.plotter
         p.subplot(0, self.CONTROLS)
-        ys = np.linspace(0.84, 0.40, len(SLIDERS))
+        ys = np.linspace(*self.SLIDER_ROWS, len(SLIDERS))
         values = self._slider_values(self.params)
         for (name, (title, rng, fmt)), y in zip(SLIDERS.items(), ys):
             fixed = self.data.is_model and name in _REFIT_SLIDERS
@@ -422,20 +490,37 @@ class ViewerApp:
                 (lambda value, n=name: self.on_slider(n, value)),
                 rng=list(rng),
                 value=float(np.clip(values[name], *rng)),
-                title=title + (" (fixed: model)" if fixed else ""),
+                title="",
                 pointa=(0.1, y),
                 pointb=(0.9, y),
                 color="#a8a8a8" if fixed else "#4a4a4a",
-                title_color="#8a8a8a" if fixed else "black",
                 interaction_event="end",
-                fmt=fmt,
-                title_height=0.018,
                 slider_width=0.015,
                 tube_width=0.004,
             )
+            rep = w.GetRepresentation()
+            rep.ShowSliderLabelOff()  # VTK's value label: replaced by the label above the tube
+            rep.SetEndCapWidth(self.SLIDER_CAP)
             if fixed:
                 w.ProcessEventsOff()
             self.sliders[name] = w
+            self.actors[f"slider_label_{name}"] = p.add_text(
+                "", position=(0.06, y + self.SLIDER_LABEL_OFFSET), viewport=True, font_size=6,
+                color="#8a8a8a" if fixed else "black", name=f"slider_label_{name}",
+            )
+            w.AddObserver("InteractionEvent", lambda *_, n=name: self._label_slider(n))  # follows a drag
+            self._label_slider(name)
+
+    def slider_label(self, name: str) -> str:
+        """The text above a slider: its title and the value at its position (lambda as 10**position)."""
+        title, _, fmt = SLIDERS[name]
+        pos = float(self.sliders[name].GetRepresentation().GetValue())
+        value = 10.0**pos if name == "lambda_surface" else pos
+        fixed = " (fixed: model)" if self.data.is_model and name in _REFIT_SLIDERS else ""
+        return f"{title} = {format(value, fmt)}{fixed}"
+
+    def _label_slider(self, name: str) -> None:
+        self._set_text(self.actors[f"slider_label_{name}"], self.slider_label(name))
 
     def _add_buttons(self) -> None:
         """Check boxes (layers, in their colours: the legend) and two push buttons (save), in the control column."""
@@ -521,6 +606,7 @@ class ViewerApp:
             raise ValueError(f"{name} slider goes from {lo:g} to {hi:g} ({'log10 ' if name == 'lambda_surface' else ''}units), got {pos:g}")
         widget = self.sliders[name]
         widget.GetRepresentation().SetValue(pos)
+        self._label_slider(name)
         if not widget.GetProcessEvents():
             self._say(f"{name} is fixed for a saved model")
             return None
@@ -542,18 +628,19 @@ class ViewerApp:
         self.set_layer(name, not self.visible.get(name, False))
         return self.visible[name]
 
-    def on_key(self, key: str) -> None:
-        """What a key press does (1-6 layers, m save mesh, k screenshot)."""
-        for k, name, _, _ in LAYERS:
-            if key == k:
-                self.toggle_layer(name)
-                return
-        if key == "m":
-            self.save_mesh()
-        elif key == "k":
-            self.save_screenshot()
-        else:
-            raise ValueError(f"no action on key {key!r}; keys: 1-6, m, k, p, q")
+    def key_bindings(self) -> dict:
+        """Key -> action: the layer keys of :data:`LAYERS`, m save mesh, k screenshot, p pick."""
+        keys = {k: (lambda n=name: self._guard(self.toggle_layer, n)) for k, name, _, _ in LAYERS}
+        keys["m"] = lambda: self._guard(self.save_mesh)
+        keys["k"] = lambda: self._guard(self.save_screenshot)
+        keys["p"] = lambda: pick_under_mouse(self.plotter)
+        return keys
+
+    def on_key(self, key: str, position: tuple[int, int] | None = None) -> None:
+        """Press a key as the window would (VTK events: only the viewer's action runs, see :mod:`o3drbf.viewers.keys`)."""
+        if key not in self.key_bindings():
+            raise ValueError(f"no action on key {key!r}; keys: {', '.join(self.key_bindings())}, q")
+        press_key(self.plotter, key, position)
 
     def on_pick(self, point) -> tuple[float, float]:
         """Show (and return) f and |grad f| at a picked point (data coordinates)."""
@@ -658,7 +745,7 @@ class ViewerApp:
         for kind in ("surface", "exterior", "sphere"):
             pts = None if res.constraints is None else res.constraints.get(kind)
             if pts is not None and len(pts):
-                self.actors[kind] = p.add_points(np.asarray(pts), color=COLORS[kind], point_size=5.0, render_points_as_spheres=False, lighting=False, name=kind, reset_camera=False, pickable=False)
+                self.actors[kind] = p.add_points(self.shown(pts), color=COLORS[kind], point_size=5.0, render_points_as_spheres=False, lighting=False, name=kind, reset_camera=False, pickable=False)
         if res.refit or self.level_range is None:
             self._fit_level_range(res)
             self._sync_sliders(res.params)
@@ -679,6 +766,7 @@ class ViewerApp:
             if v > rep.GetMaximumValue():
                 rep.SetMaximumValue(v)
             rep.SetValue(v)
+            self._label_slider(name)
 
     def _fit_level_range(self, res: FitResult) -> None:
         """Let the iso-level slider span twice f's typical value at the exterior constraints.
@@ -703,6 +791,7 @@ class ViewerApp:
         rep.SetMinimumValue(lo)
         rep.SetMaximumValue(hi)
         rep.SetValue(level)
+        self._label_slider("level")
 
     def show_poisson(self, mesh) -> None:
         self.poisson_mesh = mesh
@@ -738,14 +827,15 @@ class ViewerApp:
     # -- window --------------------------------------------------------------------------
 
     def _apply_visibility(self) -> None:
-        for name in ("points", "surface", "exterior", "sphere", "mesh"):
+        for name in ("surface", "exterior", "sphere", "mesh"):
             actor = self._renderer(self.MAIN).actors.get(name)
             if actor is not None:
                 actor.SetVisibility(bool(self.visible[name]))
-        for col, name in self.actors.get("cameras_names", []):
-            actor = self._renderer(col).actors.get(name)
-            if actor is not None:
-                actor.SetVisibility(bool(self.visible["cameras"]))
+        for layer in ("cameras", "points"):
+            for col, name in self.actors.get(f"{layer}_names", []):
+                actor = self._renderer(col).actors.get(name)
+                if actor is not None:
+                    actor.SetVisibility(bool(self.visible[layer]))
 
     def _set_text(self, actor, text: str) -> None:
         actor.SetInput(text)
@@ -812,11 +902,6 @@ class ViewerApp:
     def run(self) -> int:
         """Open the window, start the jobs and run the event loop until closed."""
         p = self.plotter
-        for key, name, _, _ in LAYERS:
-            p.add_key_event(key, lambda n=name: self.toggle_layer(n))
-        p.add_key_event("m", lambda: self._guard(self.save_mesh))
-        p.add_key_event("k", lambda: self._guard(self.save_screenshot))
-        p.enable_surface_point_picking(callback=lambda point: self._guard(self.on_pick, point), show_message=False, show_point=False, left_clicking=False)
         self.start_jobs()
         p.iren.add_observer("TimerEvent", self._on_timer)
         p.show(interactive_update=True, auto_close=False)
