@@ -144,7 +144,7 @@ VIEWER_OVERRIDES = {"resolution": 64, "surface_count": 1500}
 #: What the viewer draws: at most ``max_points`` of each point layer (a
 #: seeded subsample, so the surface stays visible on dense scans), the input
 #: points light and small.
-VIEWER_DISPLAY = {"max_points": 50_000, "point_size": 1.5, "point_color": "#a9a9a9"}
+VIEWER_DISPLAY = {"max_points": 50_000, "point_size": 1.0, "point_color": "#a9a9a9"}
 
 #: Space carving from photographs (:mod:`o3drbf.photo.carve`).
 CARVE_DEFAULTS = {

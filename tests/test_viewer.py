@@ -629,3 +629,38 @@ def test_distance_to_another_mesh_colours_both_panels_with_one_range(tmp_path):
         _assert_readable(app)
     finally:
         app.close()
+
+
+def test_dense_points_leave_the_surface_visible(tmp_path):
+    """200k points on a sphere over the sphere's mesh: the default display (50k, light, 1 px) covers little of it."""
+    from o3drbf.options import VIEWER_DISPLAY
+    from o3drbf.viewers.app import _poly_from_mesh
+    from o3drbf.viewers.inputs import ViewInput
+
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(200_000, 3))
+    pts = 0.5 * pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    data = ViewInput(source=str(tmp_path / "dense.ply"), points=pts, normals=2 * pts)
+    sphere = o3d.geometry.TriangleMesh.create_sphere(0.5, 60)
+    sphere.compute_vertex_normals()
+
+    def covered(**display):
+        app = ViewerApp.offscreen(data, PARAMS, window_size=(1600, 800), poisson=False, **display)  # the default window
+        try:
+            p = app.plotter
+            p.subplot(0, app.MAIN)
+            p.add_mesh(_poly_from_mesh(sphere), color=COLORS["mesh"], smooth_shading=True, name="mesh", reset_camera=False)
+            points = p.renderers[p.renderers.loc_to_index((0, app.MAIN))].actors["points1"]
+            points.SetVisibility(0)
+            bare = _shot(p)[:, 320:, :3].astype(int)
+            points.SetVisibility(1)
+            drawn = _shot(p)[:, 320:, :3].astype(int)
+        finally:
+            app.close()
+        surface = np.abs(bare - 255).max(axis=2) > 10
+        return float((np.abs(drawn - bare).max(axis=2) > 10)[surface].mean())
+
+    now = covered()
+    before = covered(max_points=10**9)  # every point, as before the cap
+    assert VIEWER_DISPLAY["point_size"] <= 1.0
+    assert now < 0.35 and before > now + 0.2, (now, before)
