@@ -507,6 +507,8 @@ def test_point_layers_are_capped_deterministically_in_both_panels(scan):
             main_pts, actor = drawn(app, app.MAIN)
             poisson_pts, _ = drawn(app, app.POISSON)
             assert actor.GetProperty().GetPointSize() == VIEWER_DISPLAY["point_size"]
+            cams = [app.plotter.renderers[app.plotter.renderers.loc_to_index((0, c))].GetActiveCamera() for c in (app.MAIN, app.POISSON)]
+            assert cams[0] is cams[1]  # o3drbf and Poisson: one camera
             runs.append(main_pts)
         finally:
             app.close()

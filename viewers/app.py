@@ -1,12 +1,17 @@
-"""``o3drbf view``: the input points, the constraints, the cameras and the iso-surface, with sliders.
+"""``o3drbf view``: the input points, the constraints, the cameras and the iso-surface, with sliders;
+or a finished mesh as it is.
 
-Three columns.  Controls: sliders for lambda (surface, log10), delta, tau,
-the iso-level and the grid resolution, and check boxes for the layers (in
-the layers' colours, so also the legend).  o3drbf: input points (grey),
-surface constraints (blue squares) and exterior constraints (green
-squares), as in the paper's Fig. 8; the cameras as frusta (orange); the
-iso-surface f = level.  Open3D Poisson (unless ``--no-poisson``): screened
-Poisson on the same points, its camera linked to the o3drbf panel's.
+Three columns.  Controls: sliders for lambda (surface, log scale), delta,
+tau, the iso-level and the grid resolution, each labelled "name = value"
+above its tube, and check boxes for the layers (in the layers' colours, so
+also the legend).  o3drbf: input points (light grey, 1 px, at most
+``--max-points``, default 50,000: a seeded subsample, so dense scans do not
+hide the surface), surface constraints (blue squares) and exterior
+constraints (green squares), as in the paper's Fig. 8; the cameras as
+frusta (orange); the iso-surface f = level.  Open3D Poisson (unless
+``--no-poisson``): screened Poisson on the same points, with the same
+points and cameras layers and the same camera (linked), so the panels
+compare directly.
 
 lambda/delta/tau refit, level/resolution only re-extract.  Jobs run on a
 worker thread (:mod:`o3drbf.viewers.refit`), polled by a window timer, so the window
@@ -17,7 +22,14 @@ show the values used.
 Keys: 1-6 toggle layers (points, surface constraints, exterior constraints,
 sphere constraints, cameras, iso-surface), m saves the mesh, k saves a
 screenshot, p picks the surface point under the mouse and shows f and
-|grad f| there, q quits.
+|grad f| there, q quits.  VTK's own handlers for these keys (3: red/blue
+stereo, p: a red pick box, m: animation) are switched off, as are its other
+built-in keys except r (reset camera), w / s (wireframe / surface), f (fly
+to) and q: see :mod:`o3drbf.viewers.keys`.
+
+A mesh with faces (``o3drbf view mesh.ply``) is shown as it is, not
+refitted (:mod:`o3drbf.viewers.meshview`; ``--color-by FIELD``,
+``--distance-to OTHER``); ``--refit`` fits its vertices instead.
 
 ``--screenshot OUT.png`` renders the same scene offscreen (no display
 needed) and exits.
@@ -242,7 +254,8 @@ def parse_script(text: str) -> list[tuple]:
     Commands: ``set SLIDER VALUE`` (moves a slider and runs its callback;
     VALUE in the parameter's own units), ``wait`` (until every job is done),
     ``print`` (one line describing the mesh, on stdout), ``pick X Y Z``,
-    ``key K`` (a layer/save key), ``quit``.
+    ``key K`` (a key press delivered through VTK's events, as from the
+    window), ``quit``.
     """
     steps = []
     for part in text.split(";"):
