@@ -666,3 +666,22 @@ def test_dense_points_leave_the_surface_visible(tmp_path):
     before = covered(max_points=10**9)  # every point, as before the cap
     assert VIEWER_DISPLAY["point_size"] <= 1.0
     assert now < 0.35 and before > now + 0.2, (now, before)
+
+
+def test_mesh_window_under_xvfb_keys_toggle_only_their_layer(sphere_ply):
+    xvfb = shutil.which("xvfb-run")
+    if xvfb is None:
+        pytest.skip("xvfb-run is not installed (scripts/setup.sh installs it): cannot open a window here")
+    path, v, t = sphere_ply
+    env = dict(os.environ)
+    for name in ("DISPLAY", "VTK_DEFAULT_OPENGL_WINDOW"):
+        env.pop(name, None)
+    proc = subprocess.run(
+        [xvfb, "-a", sys.executable, "-m", "o3drbf.cli", "view", str(path), "--window-size", "800", "400", "--script", "print; key 2; key 3; print; quit"],
+        capture_output=True, text=True, timeout=120, env=env,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("o3drbf view: mesh")]
+    assert len(lines) == 2, proc.stdout
+    assert f"mesh {len(t)} triangles" in lines[0] and "layers mesh; stereo off" in lines[0]
+    assert "layers mesh, edges; stereo off" in lines[1]  # "2" showed the edges, "3" did nothing (VTK: stereo)

@@ -239,7 +239,8 @@ def _view_mesh(args: argparse.Namespace, data: ViewInput, shot: Path | None) -> 
         return 0
     if sys.platform.startswith("linux") and not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
         raise RuntimeError("no display for the interactive viewer; use --screenshot OUT.png (offscreen) or run it under xvfb-run")
-    return MeshViewerApp.interactive(data, **options).run()
+    script = parse_script(args.script) if args.script else None
+    return MeshViewerApp.interactive(data, **options).run(script)
 
 
 # ----------------------------------------------------------------------------

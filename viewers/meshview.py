@@ -27,7 +27,7 @@ import numpy as np
 
 from o3drbf.viewers.geometry import look_at, vertex_distances, view_up
 from o3drbf.viewers.inputs import ViewInput
-from o3drbf.viewers.keys import own_keys
+from o3drbf.viewers.keys import own_keys, press_key
 
 __all__ = ["MeshViewerApp", "MESH_LAYERS", "COORDINATE_FIELDS", "DISTANCE_FIELD", "color_fields"]
 
@@ -327,13 +327,52 @@ class MeshViewerApp:
         if getattr(self.plotter, "render_window", None) is not None:
             self.plotter.render()
 
-    def run(self) -> int:
-        """Open the window and run the event loop until closed."""
+    def run(self, script=None) -> int:
+        """Open the window and run the event loop until closed.
+
+        ``script``: steps from :func:`o3drbf.viewers.app.parse_script`; a
+        mesh takes ``key K``, ``print``, ``wait`` (nothing to wait for) and
+        ``quit``, run by a window timer.
+        """
+        import sys
+
+        p = self.plotter
+        steps = list(script or [])
+        self.exit_code = 0
+
+        def on_timer(*_):
+            try:
+                while steps:
+                    cmd = steps.pop(0)
+                    if cmd[0] == "key":
+                        press_key(p, cmd[1])
+                    elif cmd[0] == "print":
+                        shown = ", ".join(k for k, v in self.visible.items() if v)
+                        stereo = "on" if p.render_window.GetStereoRender() else "off"
+                        print(f"o3drbf view: {self.describe()}; layers {shown}; stereo {stereo}", flush=True)
+                    elif cmd[0] == "quit":
+                        p.iren.terminate_app()
+                        return
+                    elif cmd[0] != "wait":
+                        raise ValueError(f"script command {cmd[0]!r} does not apply to a mesh; valid: key, print, wait, quit")
+            except Exception as exc:  # noqa: BLE001 - never let a callback kill the event loop silently
+                print(f"o3drbf view: error: {' '.join(str(exc).split())}", file=sys.stderr)
+                self.exit_code = 1
+                p.iren.terminate_app()
+
         try:
-            self.plotter.show(auto_close=False)
+            if steps:
+                p.iren.add_observer("TimerEvent", on_timer)
+            p.show(interactive_update=True, auto_close=False)
+            if steps:
+                p.iren.create_timer(100, repeating=True)
+            p.iren.start()
         finally:
             self.close()
-        return 0
+        if steps:
+            print(f"o3drbf view: error: the window closed before the script finished ({len(steps)} step(s) left)", file=sys.stderr)
+            return 1
+        return self.exit_code
 
     def close(self) -> None:
         self.plotter.close()
