@@ -636,7 +636,7 @@ def test_distance_to_another_mesh_colours_both_panels_with_one_range(tmp_path):
 def test_dense_points_leave_the_surface_visible(tmp_path):
     """200k points on a sphere over the sphere's mesh: the default display (50k, light, 1 px) covers little of it."""
     from o3drbf.options import VIEWER_DISPLAY
-    from o3drbf.viewers.app import _poly_from_mesh
+    from o3drbf.pictures import to_pyvista
     from o3drbf.viewers.inputs import ViewInput
 
     rng = np.random.default_rng(0)
@@ -651,7 +651,7 @@ def test_dense_points_leave_the_surface_visible(tmp_path):
         try:
             p = app.plotter
             p.subplot(0, app.MAIN)
-            p.add_mesh(_poly_from_mesh(sphere), color=COLORS["mesh"], smooth_shading=True, name="mesh", reset_camera=False)
+            p.add_mesh(to_pyvista(sphere), color=COLORS["mesh"], smooth_shading=True, name="mesh", reset_camera=False)
             points = p.renderers[p.renderers.loc_to_index((0, app.MAIN))].actors["points1"]
             points.SetVisibility(0)
             bare = _shot(p)[:, 320:, :3].astype(int)
