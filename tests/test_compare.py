@@ -202,6 +202,9 @@ def test_picture_grid(run, torus_data, tmp_path):
     drawn = [[(_panel(image, i, j) < 230).any(axis=2).mean() for j in range(4)] for i in range(len(panels))]
     assert min(min(r) for r in drawn[:-1]) > 0.05  # every view of points, truth and meshes holds something
     assert max(drawn[-1]) == 0.0  # the failed method's row is empty below its title
+    for i in range(len(panels)):  # titles drawn at the top left of each row's first panel only
+        y = HEADER_HEIGHT + i * SIZE
+        assert (image[y + 2 : y + 14, 2:60] < 100).any() and not (image[y + 2 : y + 14, SIZE + 2 : SIZE + 60] < 100).any()
     with pytest.raises(ValueError, match="png"):
         C.picture(meshes, tmp_path / "all.jpg")
 
