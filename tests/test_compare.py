@@ -176,7 +176,8 @@ def test_picture_grid(run, torus_data, tmp_path):
     rows, meshes = run
     rows = [*rows, {**dict.fromkeys(C.COLUMNS), "method": "alpha", "error": "RuntimeError: alpha produced no triangles"}]
     meshes = {**meshes, "alpha": None}
-    panels, header, clim = C.picture_panels(rows, meshes, torus_data[0], _truth(), "torus.ply")
+    panels, header, clim, bounds = C.picture_panels(rows, meshes, torus_data[0], _truth(), "torus.ply")
+    assert bounds == pytest.approx([-0.935, 0.935, -0.935, 0.935, -0.335, 0.335], abs=1e-3)  # the torus' box + 5% of 1.7
     # Rows: points, truth, one per method (the failed one included); columns: four views, one from below.
     assert len(panels) == 2 + len(rows) and all(len(r) == 4 for r in panels)
     assert [p.view for p in panels[0]] == ["front", "side", "top", "below"]
@@ -229,7 +230,7 @@ def test_picture_distance_colours_and_hidden_pieces(tmp_path):
     inner = o3d.geometry.TriangleMesh.create_sphere(0.4, 20)
     two = bigger + inner
     rows = [{"method": "poisson", "f_threshold": tau, "components": 1, "watertight": True}, {"method": "thinplate", "f_threshold": tau, "components": 2, "watertight": True}]
-    panels, _, clim = C.picture_panels(rows, {"poisson": bigger, "thinplate": two}, truth=truth)
+    panels, _, clim, _ = C.picture_panels(rows, {"poisson": bigger, "thinplate": two}, truth=truth)
     assert clim == (0.0, pytest.approx(2 * tau))
     assert np.asarray(panels[1][0].scalars) == pytest.approx(tau, rel=0.02)  # distance to the truth, per vertex
     assert "2 pieces" in panels[2][0].title

@@ -22,12 +22,21 @@ Memory: ``peak_bytes`` is the peak of Python-level allocations during the
 method, measured with :mod:`tracemalloc`.  NumPy arrays are counted (NumPy
 reports its buffers to tracemalloc); memory allocated inside Open3D's or
 Numba's compiled code is *not*, so for the Open3D methods it is a lower
-bound.  ``rss_peak_mb`` in the table sees every allocation, Open3D's too:
+bound.  ``rss_peak_mb`` (``comparison.md``'s one memory column, "Peak
+memory (MB)") sees every allocation, Open3D's too:
 the peak of the process's resident set above its level when the method
 started, sampled every 5 ms with psutil by a background thread
 (None where psutil cannot read it; allocations shorter than 5 ms can be missed, and
 pages freed earlier but kept by the allocator are not counted again).
 Times are wall-clock seconds with tracemalloc on.
+
+Outputs (:func:`write_tables`, :func:`picture`): ``comparison.md`` for people
+(human column names with units, one line of shared settings above the table,
+notes under it), ``comparison.csv``/``.json`` with the raw :data:`COLUMNS`,
+and ``comparison.png``: one row per method and one column per view
+(:data:`VIEWS`, one from below), the input points and the reference in
+their own rows, titles with the table's numbers, meshes coloured by their
+distance to the reference on one shared range.
 """
 
 from __future__ import annotations
@@ -680,13 +689,17 @@ def colour_range(rows) -> tuple[float, float] | None:
 
 
 def picture_panels(rows, meshes: dict, points=None, truth=None, reference: str | None = None, max_points: int = 200_000):
-    """The panels of :func:`picture`: ``(rows of Panel, header text, colour range)``.
+    """The panels of :func:`picture`: ``(rows of Panel, header text, colour range, bounds)``.
 
     One row for the input points, one for the reference (``truth``, when
     given), then one per method in ``rows``' order; one column per view of
     :data:`VIEWS`.  The first panel of each row carries the title
     (:func:`row_title` for methods).  With a reference, method meshes are
     coloured by each vertex's distance to it on :func:`colour_range`.
+    Every panel frames ``bounds`` ``(6,)``: the reference's box, else the
+    input points' 1st to 99th percentiles (stray outliers and a method's
+    far-off pieces fall outside; the titles still count them), padded by 5%;
+    None (everything drawn) without either.
     """
     from o3drbf.mesh.metrics import point_distances
     from o3drbf.pictures import Panel
@@ -720,7 +733,16 @@ def picture_panels(rows, meshes: dict, points=None, truth=None, reference: str |
         head.append("orange = back faces (insides seen through holes)")
     head.append("red under a see-through piece: pieces hidden inside it")
     header = "\n".join(head)
-    return grid_rows, header.replace("τ", "tau"), clim
+    bounds = None
+    if truth is not None:
+        tv = np.asarray(truth.vertices)
+        lo, hi = tv.min(axis=0), tv.max(axis=0)
+    elif points is not None:
+        lo, hi = np.percentile(np.asarray(points, dtype=float), [1, 99], axis=0)
+    if truth is not None or points is not None:
+        pad = 0.05 * (hi - lo).max()
+        bounds = tuple(float(b) for b in np.column_stack([lo - pad, hi + pad]).ravel())
+    return grid_rows, header, clim, bounds
 
 
 def picture(meshes: dict, path, points=None, rows=None, truth=None, reference: str | None = None, viewup=(0.0, 0.0, 1.0), panel_size: int = 300) -> Path:
@@ -753,8 +775,8 @@ def picture(meshes: dict, path, points=None, rows=None, truth=None, reference: s
         raise ValueError("no meshes to draw")
     if rows is None:
         rows = [{"method": name, "error": None if m is not None and len(m.triangles) else "no mesh"} for name, m in meshes.items()]
-    panels, header, clim = picture_panels(rows, meshes, points, truth, reference)
-    return grid(panels, path, panel_size=panel_size, header=header, clim=clim, colour_label="distance to reference (data units)", viewup=viewup)
+    panels, header, clim, bounds = picture_panels(rows, meshes, points, truth, reference)
+    return grid(panels, path, panel_size=panel_size, header=header, clim=clim, colour_label="distance to reference (data units)", viewup=viewup, bounds=bounds)
 
 
 # --------------------------------------------------------------------------
