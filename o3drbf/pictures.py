@@ -190,6 +190,8 @@ def _text(plotter, text, xy, size, color="black", right=False):
     hanging down from ``xy``, or rising from it when ``right`` (bottom right)."""
     actor = plotter.add_text(text, position=xy, viewport=True, font_size=size, color=color)
     prop = actor.GetTextProperty()
+    prop.SetBackgroundColor(1.0, 1.0, 1.0)  # readable over a mesh that fills the panel
+    prop.SetBackgroundOpacity(0.75)
     if right:
         prop.SetJustificationToRight()
         prop.SetVerticalJustificationToBottom()

@@ -242,6 +242,17 @@ def test_picture_distance_colours_and_hidden_pieces(tmp_path):
         assert _reddish(_panel(image, 2, view)) > 0.03  # the inner piece, seen through the outer one
 
 
+def test_views_follow_the_up_axis():
+    from o3drbf.pictures import views_around
+
+    for up in ([0, 0, 1], [0, 1, 0], [-1, 0, 0]):
+        views = views_around(up)
+        assert np.asarray(views["top"][0]) == pytest.approx(up) and np.asarray(views["below"][0]) == pytest.approx(-np.asarray(up, float))
+        assert np.dot(views["top"][1], up) == pytest.approx(0.0)  # screen-up of the top view lies in the ground plane
+        assert np.dot(views["front"][0], up) > 0 and np.dot(views["side"][0], up) > 0  # seen slightly from above
+    assert _cli(["compare", "in.ply", "--up", "y"]).up == "y"
+
+
 def test_picture_below_view_sees_the_underside(tmp_path):
     from PIL import Image
 
@@ -282,7 +293,7 @@ def test_main_compare_end_to_end(torus_data, tmp_path, capsys):
     out = tmp_path / "out"
     args = _cli(["compare", str(tmp_path / "torus.ply"), "--truth", str(tmp_path / "truth.ply"),
                  "--methods", "multiorder,poisson", "-o", str(out), "--resolution", str(RES)])
-    assert args.poisson_depth == 8 and args.density_quantile == 0.0 and args.seed == 0 and args.cameras is None
+    assert args.poisson_depth == 8 and args.density_quantile == 0.0 and args.seed == 0 and args.cameras is None and args.up == "z"
     assert C.main_compare(args) == 0
     for name in ("comparison.md", "comparison.csv", "comparison.json", "comparison.png"):
         assert (out / name).stat().st_size > 0, name

@@ -122,6 +122,7 @@ COLUMNS = (
 )
 
 _BPA_RADII = (1.0, 2.0, 4.0)
+_UP = {f"{sign}{axis}": tuple(float(s * (i == k)) for k in range(3)) for i, axis in enumerate("xyz") for sign, s in (("", 1), ("-", -1))}
 _ALPHA_FACTOR = 3.0
 _NORMAL_K = 30
 
@@ -805,6 +806,7 @@ def add_compare_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentP
     parser.add_argument("--poisson-depth", type=int, default=8, help="Open3D Poisson octree depth (default %(default)s)")
     parser.add_argument("--density-quantile", type=float, default=0.0, help="Poisson: trim vertices below this density quantile (default %(default)s: closed surface)")
     parser.add_argument("--seed", type=int, default=0, help="sampling seed (default %(default)s)")
+    parser.add_argument("--up", choices=sorted(_UP), default="z", help="the data's up axis, for the picture's views (default %(default)s; the Stanford bunny: y)")
     return parser
 
 
@@ -858,7 +860,7 @@ def main_compare(args: argparse.Namespace) -> int:
     )
     reference = Path(args.truth).name if getattr(args, "truth", None) else None
     paths = write_tables(rows, out, points=len(points), reference=reference)
-    png = picture(meshes, out / "comparison.png", points=points, rows=rows, truth=truth, reference=reference)
+    png = picture(meshes, out / "comparison.png", points=points, rows=rows, truth=truth, reference=reference, viewup=_UP[getattr(args, "up", "z")])
     print(f"o3drbf compare: {args.input} ({len(points):,} points) -> {out}/")
     print(markdown_table(rows, len(points), reference), end="")
     for row in rows:
