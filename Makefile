@@ -32,6 +32,9 @@ figures: $(SETUP)
 	mkdir -p docs/images && cp $(OUT)/figures/demo.png docs/images/demo.png
 	$(PY) -m o3drbf.viewers.sample_scan $(OUT)/figures/tori_scan.json
 	$(PY) -m o3drbf.cli view $(OUT)/figures/tori_scan.json --screenshot docs/images/viewer.png --zoom 0.5
+	$(PY) samples/generate.py $(OUT)/figures/samples
+	$(PY) -m o3drbf.cli compare $(OUT)/figures/samples/scan.json --truth $(OUT)/figures/samples/reference.ply -o $(OUT)/figures/compare
+	cp $(OUT)/figures/compare/comparison.png docs/images/compare.png
 	@if [ -f results/paper/robustness.png ]; then cp results/paper/robustness.png docs/images/robustness.png; \
 	else echo "figures: run make bench-paper for docs/images/robustness.png"; fi
 	@if [ -d $(TEMPLE) ]; then \

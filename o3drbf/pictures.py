@@ -4,13 +4,14 @@ o3drbf never needs it, so the library stays headless)."""
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from o3drbf.io.files import atomic_path
 
-__all__ = ["headless", "to_pyvista", "side_by_side"]
+__all__ = ["headless", "to_pyvista", "side_by_side", "Panel", "grid", "views_around", "PIECE_COLOR", "HEADER_HEIGHT"]
 
 
 def headless() -> None:
@@ -66,6 +67,243 @@ def side_by_side(panels, path: str | os.PathLike, window_size=(1600, 800), point
         plotter.add_text(title, font_size=11, color="black")
         plotter.view_vector(view, viewup=viewup)
     plotter.link_views()
+    with atomic_path(path) as tmp:
+        plotter.screenshot(tmp)
+    plotter.close()
+    return path
+
+
+#: Colour of the pieces of a mesh other than its largest (and of every piece
+#: hidden inside another, seen through it).
+PIECE_COLOR = "#e8112d"
+#: Height in pixels of the header strip of :func:`grid` (settings and colour bar).
+HEADER_HEIGHT = 130
+_FRONT_COLOR, _BACK_COLOR, _POINT_COLOR = "#c8d2e6", "#e8a33c", "#cc3311"
+
+
+@dataclass
+class Panel:
+    """One panel of :func:`grid`.
+
+    Attributes
+    ----------
+    title : str
+        Drawn at the panel's top left (may hold several lines).
+    mesh : open3d.geometry.TriangleMesh, optional
+    points : (N, 3) array, optional
+        Drawn as small dots (without a mesh: a panel of points).
+    scalars : (V,) array, optional
+        One value per mesh vertex, coloured on the grid's shared range.
+    view : str
+        A key of :func:`views_around` (``front``, ``side``, ``top``, ``below``).
+    """
+
+    title: str = ""
+    mesh: object = None
+    points: object = None
+    scalars: object = None
+    view: str = "front"
+
+
+def views_around(viewup=(0.0, 0.0, 1.0)) -> dict:
+    """Four viewpoints for data whose up axis is ``viewup``.
+
+    Returns
+    -------
+    dict
+        ``{name: (direction (3,), screen_up (3,))}`` for ``front`` (slightly
+        from above), ``side`` (90 degrees round the up axis), ``top`` and
+        ``below`` (straight up at the underside); ``direction`` points from
+        the scene's centre to the camera.
+    """
+    up = np.asarray(viewup, dtype=float)
+    if up.shape != (3,) or not np.linalg.norm(up) > 0:
+        raise ValueError(f"viewup must be a non-zero 3-vector, got {viewup!r}")
+    up = up / np.linalg.norm(up)
+    trial = np.array([0.0, -1.0, 0.0]) if abs(up[1]) < 0.9 else np.array([0.0, 0.0, 1.0])
+    front = trial - up * (trial @ up)
+    front /= np.linalg.norm(front)
+    side = np.cross(up, front)
+    tilt = 0.35
+    return {
+        "front": (front + tilt * up + 0.3 * side, up),
+        "side": (side + tilt * up - 0.3 * front, up),
+        "top": (up, -front),
+        "below": (-up, -front),
+    }
+
+
+def _pieces(mesh):
+    """Mask ``(F,)`` of the triangles of the largest connected piece, and
+    whether the other pieces hide inside it (it is closed and holds most of
+    their vertices)."""
+    from o3drbf.mesh.arrays import raycasting_scene, unique_edges
+
+    tris = np.asarray(mesh.triangles)
+    labels, _, _ = mesh.cluster_connected_triangles()
+    labels = np.asarray(labels)
+    main = labels == int(np.argmax(np.bincount(labels)))
+    hidden = False
+    if not main.all() and (unique_edges(tris[main])[2] == 2).all():
+        import open3d as o3d
+
+        verts = np.asarray(mesh.vertices)
+        others = np.unique(tris[~main])
+        occupancy = raycasting_scene(verts, tris[main]).compute_occupancy(o3d.core.Tensor(verts[others].astype(np.float32)))
+        hidden = bool(occupancy.numpy().mean() > 0.5)
+    return main, hidden
+
+
+def _poly(verts, tris, scalars=None):
+    import pyvista as pv
+
+    poly = pv.PolyData(verts, np.column_stack([np.full(len(tris), 3), tris]).ravel())
+    if scalars is not None:
+        poly.point_data["distance"] = np.asarray(scalars, dtype=float)
+    return poly
+
+
+def _add_mesh(plotter, mesh, scalars, clim, cmap):
+    """Draw one mesh; returns the scalar-mapped actor or None.
+
+    Coloured by ``scalars`` on ``clim`` (every piece), or in one colour with
+    back faces orange and the pieces besides the largest in
+    :data:`PIECE_COLOR`.  Pieces hidden inside a closed largest piece are
+    drawn in :data:`PIECE_COLOR` in either case, and the largest piece is
+    then see-through."""
+    verts, tris = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    main, hidden = _pieces(mesh)
+    body = main if hidden or scalars is None else np.ones(len(tris), dtype=bool)
+    kw = dict(smooth_shading=True, specular=0.2, opacity=0.35 if hidden else 1.0)
+    actor = None
+    if scalars is not None:
+        actor = plotter.add_mesh(_poly(verts, tris[body], scalars), scalars="distance", clim=clim, cmap=cmap, show_scalar_bar=False, **kw)
+    else:
+        plotter.add_mesh(_poly(verts, tris[body]), color=_FRONT_COLOR, backface_params=dict(color=_BACK_COLOR), **kw)
+    if not body.all():
+        plotter.add_mesh(_poly(verts, tris[~body]), color=PIECE_COLOR, smooth_shading=True)
+    return actor
+
+
+def _text(plotter, text, xy, size, color="black", right=False):
+    """Text at ``xy`` (fractions of the panel) at a fixed size in pixels:
+    hanging down from ``xy``, or rising from it when ``right`` (bottom right)."""
+    actor = plotter.add_text(text, position=xy, viewport=True, font_size=size, color=color)
+    prop = actor.GetTextProperty()
+    prop.SetBackgroundColor(1.0, 1.0, 1.0)  # readable over a mesh that fills the panel
+    prop.SetBackgroundOpacity(0.75)
+    if right:
+        prop.SetJustificationToRight()
+        prop.SetVerticalJustificationToBottom()
+    else:
+        prop.SetJustificationToLeft()
+        prop.SetVerticalJustificationToTop()
+    return actor
+
+
+def grid(
+    rows,
+    path: str | os.PathLike,
+    panel_size: int = 300,
+    header: str = "",
+    clim=None,
+    colour_label: str = "",
+    cmap: str = "viridis",
+    viewup=(0.0, 0.0, 1.0),
+    bounds=None,
+) -> Path:
+    """Render rows of panels into one PNG (offscreen), under a header strip.
+
+    Every panel of a column is seen from the same viewpoint with the same
+    framing (``bounds``), so panels compare at a glance.
+
+    Parameters
+    ----------
+    rows : list of list of Panel
+        Every row the same length.
+    path : str or Path
+        Output ``.png`` (written atomically).
+    panel_size : int
+        Pixels per (square) panel.  The picture is
+        ``(columns * panel_size, HEADER_HEIGHT + rows * panel_size)``.
+    header : str
+        Text of the header strip (settings shared by all rows).
+    clim : (2,) float, optional
+        Range of the panels' ``scalars`` (one for all panels), drawn as a
+        colour bar titled ``colour_label`` in the header.
+    viewup : 3-tuple
+        The data's up axis (:func:`views_around`).
+    bounds : (6,) float, optional
+        ``(xmin, xmax, ymin, ymax, zmin, zmax)`` framed by every panel
+        (default: the union of all meshes and points).
+
+    Returns
+    -------
+    Path
+    """
+    headless()
+    import pyvista as pv
+
+    path = Path(path)
+    if path.suffix.lower() != ".png":
+        raise ValueError(f"picture must be a .png file, got {str(path)!r}")
+    if not rows or not rows[0] or len({len(r) for r in rows}) != 1:
+        raise ValueError("grid needs one or more rows of panels, every row the same length")
+    views = views_around(viewup)
+    n_rows, n_cols = len(rows), len(rows[0])
+    if bounds is None:
+        lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+        for row in rows:
+            for p in row:
+                for arr in (None if p.mesh is None else np.asarray(p.mesh.vertices), p.points):
+                    if arr is not None and len(arr):
+                        a = np.asarray(arr, dtype=float)
+                        lo, hi = np.minimum(lo, a.min(axis=0)), np.maximum(hi, a.max(axis=0))
+        if not np.isfinite(lo).all():
+            lo, hi = -np.ones(3), np.ones(3)
+        bounds = np.column_stack([lo, hi]).ravel()
+    bounds = [float(b) for b in bounds]
+    centre = np.array([(bounds[0] + bounds[1]) / 2, (bounds[2] + bounds[3]) / 2, (bounds[4] + bounds[5]) / 2])
+    size = panel_size
+    window = [n_cols * size, HEADER_HEIGHT + n_rows * size]
+    plotter = pv.Plotter(
+        shape=(n_rows + 1, n_cols),
+        groups=[(0, np.s_[:])],
+        row_weights=[HEADER_HEIGHT] + [size] * n_rows,
+        off_screen=True,
+        window_size=window,
+        border=False,
+    )
+    mapper = None
+    for i, row in enumerate(rows):
+        for j, p in enumerate(row):
+            plotter.subplot(i + 1, j)
+            plotter.set_background("white")
+            if p.mesh is not None and len(p.mesh.triangles):
+                actor = _add_mesh(plotter, p.mesh, p.scalars, clim, cmap)
+                if actor is not None:
+                    mapper = actor.mapper
+            if p.points is not None and len(p.points):
+                plotter.add_points(np.asarray(p.points, dtype=float), color=_POINT_COLOR, point_size=2, render_points_as_spheres=False)
+            if p.title:
+                _text(plotter, p.title, (0.02, 0.98), 8)
+            _text(plotter, p.view, (0.98, 0.02), 8, color="#555555", right=True)
+            direction, up = views[p.view]
+            direction = direction / np.linalg.norm(direction)
+            cam = plotter.camera
+            cam.focal_point = centre
+            cam.position = centre + 10.0 * max(bounds[1] - bounds[0], bounds[3] - bounds[2], bounds[5] - bounds[4], 1e-12) * direction
+            cam.up = up
+            plotter.reset_camera(bounds=bounds)
+            cam.zoom(1.0)
+    plotter.subplot(0, 0)
+    plotter.set_background("white")
+    if header:
+        _text(plotter, header, (0.005, 0.95), 9)
+    if mapper is not None:
+        bar = plotter.add_scalar_bar(title=colour_label, mapper=mapper, n_labels=5, fmt="%.3g", color="black",
+                                     position_x=0.56, position_y=0.1, width=0.42, height=0.6, title_font_size=14, label_font_size=13)
+        bar.SetTextPositionToPrecedeScalarBar()
     with atomic_path(path) as tmp:
         plotter.screenshot(tmp)
     plotter.close()

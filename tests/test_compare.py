@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import re
 
 import numpy as np
 import pytest
@@ -93,30 +94,178 @@ def test_open3d_normals_face_the_cameras():
     assert np.einsum("ij,ij->i", inward, normals).max() < -0.9
 
 
+# The markdown's headers, written out here (not read from compare.HUMAN_COLUMNS).
+HUMAN = {
+    "Method": "method", "Time (s)": "seconds", "Peak memory (MB)": "rss_peak_mb", "Triangles": "triangles",
+    "Watertight": "watertight", "Pieces": "components", "Euler characteristic": "euler_characteristic",
+    "Genus": "genus", "Fitness mean (data units)": "fitness_mean", "Mean curvature (1/data units)": "average_curvature",
+    "Chamfer L1 (data units)": "chamfer_l1", "Hausdorff (data units)": "hausdorff", "F-score @ τ": "f_score",
+    "Precision @ τ": "precision", "Recall @ τ": "recall", "Normal consistency": "normal_consistency",
+}
+NAMES = {"multiorder": "o3drbf multi-order (default)", "poisson": "Open3D Poisson", "bpa": "Open3D ball pivoting"}
+
+
+def _cell_matches(cell, value):
+    if isinstance(value, bool):
+        return cell == ("yes" if value else "no")
+    if isinstance(value, int):
+        return int(cell) == value
+    return float(cell) == pytest.approx(value, rel=5e-4, abs=1e-12)
+
+
 def test_tables(run, tmp_path):
     rows, _ = run
-    paths = C.write_tables(rows, tmp_path)
+    paths = C.write_tables(rows, tmp_path, points=1500, reference="torus.ply")
     md = paths["markdown"].read_text().splitlines()
+    # One line of shared settings above the table: points, reference, tau.
+    tau = rows[0]["f_threshold"]
+    assert md[0].startswith("1,500 input points · reference: torus.ply · τ = ") and md[1] == ""
+    assert float(md[0].split("τ = ")[1].split()[0]) == pytest.approx(tau, rel=5e-4)
     table = [line for line in md if line.startswith("|")]
-    assert table[0].startswith("| method |") and "chamfer_l1" in table[0] and set(table[1]) <= set("|-")
-    assert len(table) == 2 + len(METHODS)
-    assert [line.split("|")[1].strip() for line in table[2:]] == list(METHODS)
+    header = [h.strip() for h in table[0].strip("|").split("|")]
+    assert header == list(HUMAN)  # human names, one memory column, no constant f_threshold column
+    assert set(table[1]) <= set("|-") and len(table) == 2 + len(METHODS)
+    assert not any("_" in h for h in header)
+    for line, row in zip(table[2:], rows):
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        assert cells[0] == NAMES[row["method"]]
+        for head, cell in zip(header[1:], cells[1:]):
+            value = row[HUMAN[head]]
+            assert (cell == "") if value is None else _cell_matches(cell, value), (head, cell, value)
+    assert any(line.startswith("Peak memory: growth of the process's resident memory") for line in md)
+    # The machine-readable files keep the raw names, f_threshold and the tracemalloc peak included.
     with open(paths["csv"], newline="") as fh:
         parsed = list(csv.DictReader(fh))
     assert [r["method"] for r in parsed] == list(METHODS)
     assert float(parsed[0]["chamfer_l1"]) == pytest.approx(rows[0]["chamfer_l1"])
+    assert float(parsed[0]["f_threshold"]) == tau and float(parsed[0]["peak_mb"]) == rows[0]["peak_mb"]
     assert json.loads(paths["json"].read_text()) == rows
     assert not list(tmp_path.glob(".*"))  # no temporaries left behind
 
 
-def test_picture_is_png(run, torus_data, tmp_path):
-    _, meshes = run
-    path = C.picture({**meshes, "alpha": None}, tmp_path / "all.png", points=torus_data[0])
-    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    width, height = int.from_bytes(path.read_bytes()[16:20], "big"), int.from_bytes(path.read_bytes()[20:24], "big")
-    assert width == 4 * 420 and height == 420  # one panel per mesh, the failed one included
+def test_failed_rows_get_an_error_column(tmp_path):
+    rows = [{"method": "bpa", "error": "RuntimeError: bpa produced no triangles"}, {"method": "poisson", "seconds": 0.5, "triangles": 10}]
+    md = C.markdown_table(rows, points=50)
+    table = [line for line in md.splitlines() if line.startswith("|")]
+    assert table[0] == "| Method | Time (s) | Triangles | Error |"
+    assert table[2] == "| Open3D ball pivoting |  |  | RuntimeError: bpa produced no triangles |"
+    assert md.startswith("50 input points · no reference mesh")
+
+
+SIZE = 160  # pixels per panel in the picture tests
+
+
+def _png_size(path):
+    data = path.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+
+
+def _panel(image, row, col):
+    from o3drbf.pictures import HEADER_HEIGHT
+
+    y = HEADER_HEIGHT + row * SIZE
+    return image[y + 70 : y + 140, col * SIZE + 5 : (col + 1) * SIZE - 5]  # below the titles, above the view names
+
+
+def test_picture_grid(run, torus_data, tmp_path):
+    from PIL import Image
+
+    from o3drbf.pictures import HEADER_HEIGHT
+
+    rows, meshes = run
+    rows = [*rows, {**dict.fromkeys(C.COLUMNS), "method": "alpha", "error": "RuntimeError: alpha produced no triangles"}]
+    meshes = {**meshes, "alpha": None}
+    panels, header, clim, bounds = C.picture_panels(rows, meshes, torus_data[0], _truth(), "torus.ply")
+    assert bounds == pytest.approx([-0.935, 0.935, -0.935, 0.935, -0.335, 0.335], abs=1e-3)  # the torus' box + 5% of 1.7
+    # Rows: points, truth, one per method (the failed one included); columns: four views, one from below.
+    assert len(panels) == 2 + len(rows) and all(len(r) == 4 for r in panels)
+    assert [p.view for p in panels[0]] == ["front", "side", "top", "below"]
+    assert panels[0][0].points is not None and all(p.mesh is None for p in panels[0])  # points on their own
+    assert panels[1][0].mesh is not None and panels[1][0].scalars is None and panels[1][0].title.startswith("reference: torus.ply")
+    tau = rows[0]["f_threshold"]
+    assert clim == (0.0, pytest.approx(2 * tau)) and f"{tau:.4g}" in header
+    for row, line in zip(rows, panels[2:]):
+        title = line[0].title
+        assert title.splitlines()[0] == NAMES.get(row["method"], "Open3D alpha shape")
+        if row["error"]:
+            assert "FAILED" in title and all(p.mesh is None for p in line)
+            continue
+        numbers = dict(re.findall(r"(Chamfer L1|F-score) ([0-9.e-]+)", title))
+        assert float(numbers["Chamfer L1"]) == pytest.approx(row["chamfer_l1"], rel=5e-4)
+        assert float(numbers["F-score"]) == pytest.approx(row["f_score"], rel=5e-4)
+        pieces = row["components"]
+        assert f"watertight {'yes' if row['watertight'] else 'no'}, {pieces} piece{'' if pieces == 1 else 's'}" in title
+        assert len(line[0].scalars) == len(meshes[row["method"]].vertices)
+    path = C.picture(meshes, tmp_path / "all.png", points=torus_data[0], rows=rows, truth=_truth(), panel_size=SIZE)
+    assert _png_size(path) == (4 * SIZE, HEADER_HEIGHT + len(panels) * SIZE)
+    image = np.asarray(Image.open(path).convert("RGB")).astype(int)
+    drawn = [[(_panel(image, i, j) < 230).any(axis=2).mean() for j in range(4)] for i in range(len(panels))]
+    assert min(min(r) for r in drawn[:-1]) > 0.05  # every view of points, truth and meshes holds something
+    assert max(drawn[-1]) == 0.0  # the failed method's row is empty below its title
+    for i in range(len(panels)):  # titles drawn at the top left of each row's first panel only
+        y = HEADER_HEIGHT + i * SIZE
+        assert (image[y + 2 : y + 14, 2:60] < 100).any() and not (image[y + 2 : y + 14, SIZE + 2 : SIZE + 60] < 100).any()
     with pytest.raises(ValueError, match="png"):
         C.picture(meshes, tmp_path / "all.jpg")
+
+
+def _colour_fraction(panel, rgb, tol=60):
+    return (np.abs(panel - np.array(rgb)).sum(axis=2) < tol).mean()
+
+
+def _reddish(panel):
+    r, g, b = panel[..., 0], panel[..., 1], panel[..., 2]
+    return ((r - g > 50) & (r - b > 30)).mean()
+
+
+def test_picture_distance_colours_and_hidden_pieces(tmp_path):
+    from PIL import Image
+
+    from o3drbf.pictures import PIECE_COLOR
+
+    truth = o3d.geometry.TriangleMesh.create_sphere(1.0, 40)
+    tau = 0.01 * np.linalg.norm(np.ptp(np.asarray(truth.vertices), axis=0))
+    bigger = o3d.geometry.TriangleMesh.create_sphere(1.0 + tau, 40)  # every vertex tau from the truth
+    inner = o3d.geometry.TriangleMesh.create_sphere(0.4, 20)
+    two = bigger + inner
+    rows = [{"method": "poisson", "f_threshold": tau, "components": 1, "watertight": True}, {"method": "thinplate", "f_threshold": tau, "components": 2, "watertight": True}]
+    panels, _, clim, _ = C.picture_panels(rows, {"poisson": bigger, "thinplate": two}, truth=truth)
+    assert clim == (0.0, pytest.approx(2 * tau))
+    assert np.asarray(panels[1][0].scalars) == pytest.approx(tau, rel=0.02)  # distance to the truth, per vertex
+    assert "2 pieces" in panels[2][0].title
+    path = C.picture({"poisson": bigger, "thinplate": two}, tmp_path / "p.png", rows=rows, truth=truth, panel_size=SIZE)
+    image = np.asarray(Image.open(path).convert("RGB")).astype(int)
+    assert PIECE_COLOR == "#e8112d"  # red: not in viridis, not the orange of back faces
+    for view in range(4):
+        assert _reddish(_panel(image, 1, view)) == 0.0  # one piece: no red
+        assert _reddish(_panel(image, 2, view)) > 0.03  # the inner piece, seen through the outer one
+
+
+def test_views_follow_the_up_axis():
+    from o3drbf.pictures import views_around
+
+    for up in ([0, 0, 1], [0, 1, 0], [-1, 0, 0]):
+        views = views_around(up)
+        assert np.asarray(views["top"][0]) == pytest.approx(up) and np.asarray(views["below"][0]) == pytest.approx(-np.asarray(up, float))
+        assert np.dot(views["top"][1], up) == pytest.approx(0.0)  # screen-up of the top view lies in the ground plane
+        assert np.dot(views["front"][0], up) > 0 and np.dot(views["side"][0], up) > 0  # seen slightly from above
+    assert _cli(["compare", "in.ply", "--up", "y"]).up == "y"
+
+
+def test_picture_below_view_sees_the_underside(tmp_path):
+    from PIL import Image
+
+    # The upper half of a torus: from below, its inside (back faces, orange) shows; from above, none.
+    mesh = _truth()
+    tris = np.asarray(mesh.triangles)
+    upper = np.asarray(mesh.vertices)[tris].mean(axis=1)[:, 2] > 0.0
+    mesh.triangles = o3d.utility.Vector3iVector(tris[upper])
+    path = C.picture({"bpa": mesh}, tmp_path / "half.png", rows=[{"method": "bpa", "components": 1, "watertight": False}], panel_size=SIZE)
+    image = np.asarray(Image.open(path).convert("RGB")).astype(int)
+    orange = (0xE8, 0xA3, 0x3C)
+    top, below = _colour_fraction(_panel(image, 0, 2), orange, 90), _colour_fraction(_panel(image, 0, 3), orange, 90)
+    assert top < 0.01 and below > 0.1, (top, below)
 
 
 def test_unknown_method_lists_valid_ones(torus_data):
@@ -144,14 +293,17 @@ def test_main_compare_end_to_end(torus_data, tmp_path, capsys):
     out = tmp_path / "out"
     args = _cli(["compare", str(tmp_path / "torus.ply"), "--truth", str(tmp_path / "truth.ply"),
                  "--methods", "multiorder,poisson", "-o", str(out), "--resolution", str(RES)])
-    assert args.poisson_depth == 8 and args.density_quantile == 0.0 and args.seed == 0 and args.cameras is None
+    assert args.poisson_depth == 8 and args.density_quantile == 0.0 and args.seed == 0 and args.cameras is None and args.up == "z"
     assert C.main_compare(args) == 0
     for name in ("comparison.md", "comparison.csv", "comparison.json", "comparison.png"):
         assert (out / name).stat().st_size > 0, name
     rows = json.loads((out / "comparison.json").read_text())
     assert [r["method"] for r in rows] == ["multiorder", "poisson"]
     assert all(r["chamfer_l1"] < CHAMFER_BOUND[r["method"]] for r in rows)
-    assert "| multiorder |" in capsys.readouterr().out
+    assert "| o3drbf multi-order (default) |" in capsys.readouterr().out
+    md = (out / "comparison.md").read_text().splitlines()
+    assert md[0].startswith("1,500 input points · reference: truth.ply · τ = ")
+    assert [line for line in md if line.startswith("|")][0].startswith("| Method | Time (s) | Peak memory (MB) |")
 
     bad = tmp_path / "broken.ply"
     bad.write_text("not a mesh\n")

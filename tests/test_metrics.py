@@ -473,6 +473,7 @@ def test_curvature_undefined_everywhere_raises():
 def test_public_names():
     assert set(metrics.__all__) == {
         "fitness_error",
+        "point_distances",
         "mean_curvature",
         "average_curvature",
         "chamfer",
@@ -480,3 +481,14 @@ def test_public_names():
         "normal_consistency",
         "mesh_report",
     }
+
+
+def test_point_distances_to_a_unit_square():
+    # Two triangles spanning the unit square at z = 0: a point above it is |z| away, one beside it
+    # is the distance to the nearest edge.
+    square = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]),
+                                       o3d.utility.Vector3iVector([[0, 1, 2], [0, 2, 3]]))
+    pts = np.array([[0.5, 0.5, 0.3], [0.2, 0.7, -0.05], [2.0, 0.5, 0.0], [-3.0, -4.0, 0.0]])
+    assert metrics.point_distances(pts, square) == pytest.approx([0.3, 0.05, 1.0, 5.0], abs=1e-6)
+    with pytest.raises(ValueError):
+        metrics.point_distances(np.zeros((2, 2)), square)

@@ -32,6 +32,7 @@ from o3drbf.validation import as_points, check_number
 
 __all__ = [
     "fitness_error",
+    "point_distances",
     "mean_curvature",
     "average_curvature",
     "chamfer",
@@ -173,6 +174,33 @@ def fitness_error(points: Any, mesh: Any) -> dict[str, float]:
     verts, tris = mesh_arrays(mesh)
     d = _Surface(verts, tris).distance(pts)
     return {"mean": float(d.mean()), "rms": float(np.sqrt(np.mean(d * d))), "max": float(d.max())}
+
+
+def point_distances(points: Any, mesh: Any) -> np.ndarray:
+    """Unsigned distance from each point to a mesh (exact point-to-triangle).
+
+    Parameters
+    ----------
+    points : (N, 3) array_like
+        E.g. the vertices of a reconstruction, to colour it by its distance
+        to a reference.
+    mesh : open3d.geometry.TriangleMesh
+
+    Returns
+    -------
+    (N,) ndarray of float
+        In the units of the points (float32 ``RaycastingScene`` after
+        centring on the mesh's bounding box, as :func:`fitness_error`).
+
+    Raises
+    ------
+    ValueError
+        Bad points, or a mesh that is empty, has no triangles or has
+        non-finite vertices.
+    """
+    pts = as_points(points, name="points")
+    verts, tris = mesh_arrays(mesh)
+    return _Surface(verts, tris).distance(pts)
 
 
 # --------------------------------------------------------------------------
