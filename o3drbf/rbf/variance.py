@@ -124,14 +124,17 @@ def local_posterior_variance(kernel: Kernel, centres, smoothing, points, neighbo
         used, local = np.unique(inverse[sel], return_inverse=True)
         idx = hood[used]  # (B, m)
         pts = c[idx]  # (B, m, 3)
-        kk = kernel(np.linalg.norm(pts[:, :, None, :] - pts[:, None, :, :], axis=-1))
-        kk[:, np.arange(m), np.arange(m)] += lam[idx]
+        sq = np.einsum("bik,bik->bi", pts, pts)
+        gram = np.matmul(pts, pts.transpose(0, 2, 1))
+        kk = kernel(np.sqrt(np.maximum(sq[:, :, None] + sq[:, None, :] - 2.0 * gram, 0.0)))
+        kk[:, np.arange(m), np.arange(m)] = phi0 + lam[idx]  # exact diagonal (the Gram formula rounds r = 0)
         try:
             inv_chol = np.linalg.solve(np.linalg.cholesky(kk), eye)  # (B, m, m): L^{-1}
         except np.linalg.LinAlgError:
             raise ValueError("a local kernel matrix is not positive definite (repeated constraints with zero smoothing?); "
                              "give them some smoothing or merge them") from None
-        kx = kernel(np.linalg.norm(x[sel][:, None, :] - pts[local], axis=-1))  # (S, m)
+        diff = x[sel][:, None, :] - pts[local]
+        kx = kernel(np.sqrt(np.einsum("sik,sik->si", diff, diff)))  # (S, m)
         z = np.einsum("sij,sj->si", inv_chol[local], kx)
         out[sel] = phi0 - np.einsum("si,si->s", z, z)
     return np.clip(out, 0.0, phi0)
