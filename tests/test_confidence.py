@@ -168,6 +168,10 @@ def test_vertex_confidence_on_a_fit_alone_matches_the_pipeline(with_confidence):
     c = r.constraints
     vc = vertex_confidence(r.surface, r.mesh, c.smoothing, c.select(0), spacing=r.report.mean_spacing, neighbours=32, distance_scale=2.0)
     np.testing.assert_array_equal(vc.confidence, r.confidence.confidence)
+    stage, mesh, removed = o3drbf.mesh_confidence(r.surface, r.mesh, c, r.report.mean_spacing, Options.create(confidence=True).confidence)
+    np.testing.assert_array_equal(stage.confidence, vc.confidence)
+    assert mesh is r.mesh and removed == 0
+    assert o3drbf.mesh_confidence(r.surface, r.mesh, c)[0] is None  # nothing asked, nothing computed
     with pytest.raises(ValueError, match="smoothing"):
         vertex_confidence(r.surface, r.mesh, c.smoothing[:-1], neighbours=32, distance_scale=2.0)
 
