@@ -117,7 +117,7 @@ def vertex_confidence(surface, mesh, smoothing, observed=None, *, spacing: float
     surface : ImplicitSurface
         The fit: its kernel, its centres (the constraints, box coordinates)
         and its normalization.
-    mesh : open3d.geometry.TriangleMesh or (V, 3) array_like
+    mesh : open3d.geometry.TriangleMesh or (V, 3) ndarray
         The mesh (or its vertices), data coordinates.
     smoothing : float or (M,) array_like
         lambda_i of each centre of ``surface`` (absolute, as fitted; e.g.
