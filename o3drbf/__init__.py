@@ -11,7 +11,8 @@ regularized linear solve, meshed by marching cubes.
 >>> result.mesh, result.surface(points[:3])               # doctest: +SKIP
 
 The stages of :func:`reconstruct` are public too (:mod:`o3drbf.pipeline`):
-read -> outliers -> constraints -> parameters -> fit -> extract -> colour.
+read -> outliers -> constraints -> parameters -> fit -> extract -> colour
+(-> confidence and trim, when asked).
 """
 
 from o3drbf.constraints.core import Constraints
@@ -28,6 +29,7 @@ from o3drbf.pipeline import (
     mesh_surface,
     fit,
     fit_surface,
+    mesh_confidence,
     reconstruct,
     remove_outliers,
 )
@@ -54,6 +56,7 @@ __all__ = [
     "fit_surface",
     "mesh_surface",
     "colour",
+    "mesh_confidence",
     "fit",
     "ImplicitSurface",
     "extract_mesh",

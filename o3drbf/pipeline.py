@@ -10,6 +10,7 @@ The data's path, each stage a public function that can be called alone::
     surface, solution, robust = fit_surface(cset, params, options.fit)   # fit
     mesh = mesh_surface(surface, options.extract)               # extract
     mesh = colour(mesh, data)                                   # colour
+    conf, mesh, removed = mesh_confidence(surface, mesh, constraints, spacing, options.confidence)  # confidence, trim (when asked)
 
 :func:`reconstruct` runs them in that order and returns a
 :class:`Reconstruction` with a typed :class:`Report` (counts, parameters and
@@ -28,6 +29,7 @@ import numpy as np
 
 from o3drbf.constraints.core import EXTERIOR, SPHERE, SURFACE, Constraints, bounding_sphere, exterior_from_normals, surface_constraints
 from o3drbf.options import DEFAULTS, PAPER_VALUES, auto_resolution, auto_surface_count, ConstraintOptions, ExtractOptions, FitOptions, Options, OutlierOptions, ParameterOptions
+from o3drbf.options import ConfidenceOptions
 from o3drbf.pointset import PointSet
 from o3drbf.prep.normalize import Normalization, check_spans_volume
 from o3drbf.prep.sampling import mean_spacing
@@ -54,6 +56,7 @@ __all__ = [
     "fit_surface",
     "mesh_surface",
     "colour",
+    "mesh_confidence",
     "DEFAULTS",
 ]
 
@@ -71,7 +74,7 @@ class StageTiming:
     Attributes
     ----------
     name : str
-        "read", "outliers", "normals", "constraints", "parameters", "fit", "extract", "colour" or "write".
+        "read", "outliers", "normals", "constraints", "parameters", "fit", "extract", "colour", "confidence" or "write".
     seconds : float
         Wall time.
     peak_mb : float
@@ -203,6 +206,10 @@ class Report:
     resolution : int or None
         Marching-cubes cells along the longest side (after "auto").
     stages : list of StageTiming
+    confidence : dict or None
+        With ``confidence`` or ``trim``: the per-vertex confidence's mean,
+        min, q25 and median (over the final mesh), ``trim`` (the threshold or
+        None) and ``triangles_removed``; None when not asked.
     """
 
     points: int = 0
@@ -235,6 +242,7 @@ class Report:
     triangles: int | None = None
     resolution: int | None = None
     stages: list = field(default_factory=list)
+    confidence: dict | None = None
 
     def as_dict(self) -> dict:
         """The report as a plain dict (JSON-ready apart from NaN)."""
@@ -269,6 +277,9 @@ class Reconstruction:
         Counts, parameters, timings: what the command line prints.
     options : Options
         The options used.
+    confidence : VertexConfidence or None
+        Per vertex of ``mesh`` (:func:`mesh_confidence`), when ``confidence``
+        or ``trim`` was asked; else None.
     """
 
     surface: ImplicitSurface
@@ -277,6 +288,7 @@ class Reconstruction:
     solution: Solution
     report: Report
     options: Options = field(default_factory=Options)
+    confidence: object = None
 
     @property
     def stats(self) -> Report:
@@ -715,6 +727,48 @@ def colour(mesh, data: PointSet):
     return color_mesh(mesh, points=data.points, colors=data.colors)
 
 
+def mesh_confidence(surface: ImplicitSurface, mesh, constraints: Constraints, spacing: float | None = None,
+                    options: ConfidenceOptions = ConfidenceOptions()):
+    """Per-vertex confidence of the mesh (:func:`o3drbf.mesh.confidence.vertex_confidence`), and trimming by it.
+
+    Parameters
+    ----------
+    surface : ImplicitSurface
+    mesh : open3d.geometry.TriangleMesh or None
+    constraints : Constraints
+        The constraints of the fit, data coordinates (``Reconstruction.constraints``):
+        their smoothing is the GP's noise, their surface points what was observed.
+    spacing : float, optional
+        Mean spacing of the surface constraints, data units (default: measured).
+    options : ConfidenceOptions
+        Nothing is computed unless ``confidence`` or ``trim`` is set.
+
+    Returns
+    -------
+    confidence : VertexConfidence or None
+        Per vertex of the returned mesh.
+    mesh : open3d.geometry.TriangleMesh or None
+        Trimmed when ``options.trim`` is set (an open surface where nothing was seen).
+    triangles_removed : int
+    """
+    options.validate()
+    if mesh is None or not options.wanted:
+        return None, mesh, 0
+    from o3drbf.mesh.confidence import trim_by_confidence, vertex_confidence
+
+    if len(constraints) != len(surface.centres):
+        raise ValueError(f"{len(constraints)} constraints for a surface with {len(surface.centres)} centres; give the constraints of this fit")
+    spacing = spacing if spacing is not None and np.isfinite(spacing) else None
+    conf = vertex_confidence(surface, mesh, constraints.smoothing, constraints.select(SURFACE), spacing=spacing,
+                             neighbours=options.neighbours, distance_scale=options.distance_scale)
+    removed = 0
+    if options.trim is not None:
+        mesh, kept, removed = trim_by_confidence(mesh, conf.confidence, options.trim)
+        conf = conf.subset(kept)
+        log.info("trimmed %d triangles with a vertex of confidence below %g", removed, options.trim)
+    return conf, mesh, removed
+
+
 # --------------------------------------------------------------------------
 # the whole job
 
@@ -811,6 +865,10 @@ def reconstruct(points, normals=None, *, cameras=None, point_camera=None, colors
     if robust is not None:
         fitted = robust.pop("constraints")
     used = Constraints(norm.inverse(fitted.points), fitted.values, fitted.smoothing, fitted.kind)
+    confidence, trimmed = None, 0
+    if mesh is not None and opts.confidence.wanted:
+        with stages.stage("confidence"):
+            confidence, mesh, trimmed = mesh_confidence(surface, mesh, used, cset.spacing / norm.scale, opts.confidence)
     counts = cset.constraints.counts()
     report = Report(
         points=len(data),
@@ -844,5 +902,6 @@ def reconstruct(points, normals=None, *, cameras=None, point_camera=None, colors
         resolution=None if mesh is None or opts.extract.voxel_size is not None else (
             auto_resolution(cset.spacing) if opts.extract.resolution == "auto" else int(opts.extract.resolution)),
         stages=stages.timings,
+        confidence=None if confidence is None else {**confidence.summary(), "trim": opts.confidence.trim, "triangles_removed": trimmed},
     )
-    return Reconstruction(surface, mesh, used, sol, report, opts)
+    return Reconstruction(surface, mesh, used, sol, report, opts, confidence)

@@ -33,7 +33,15 @@ SAMPLES = {
     "tori_stack.ply": lambda: TorusStack(3).sample(12000, noise=0.006, seed=2),
     "cube_corner.ply": lambda: cube_corner(4000, noise=0.002, seed=3),
     "sphere.xyz": lambda: Sphere(1.0).sample(3000, noise=0.005, seed=4),
+    # the upper half of a sphere only: the fit closes the rest, --trim removes it (README "Confidence and trimming")
+    "half_sphere.ply": lambda: upper_half(*Sphere(1.0).sample(3000, noise=0.002, seed=6)),
 }
+
+
+def upper_half(points, normals):
+    """The points (and normals) with z > 0."""
+    keep = points[:, 2] > 0
+    return points[keep], normals[keep]
 
 
 def generate(out: Path) -> dict[str, Path]:

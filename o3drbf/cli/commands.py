@@ -78,6 +78,13 @@ def add_option_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--resolution", type=count_or_auto, default=d["resolution"], metavar="auto|N",
                    help="marching-cubes cells along the longest side; auto: 2.5 per constraint spacing, 128 to 256 (default %(default)s)")
     g.add_argument("--voxel-size", type=float, default=d["voxel_size"], help="grid spacing in data units (overrides --resolution)")
+    g = parser.add_argument_group("confidence (off by default)")
+    g.add_argument("--confidence", action="store_true", default=d["confidence"],
+                   help="per-vertex confidence in [0, 1] from the fit (GP posterior variance of the kernel and distance to the "
+                   "surface constraints), written as the float PLY vertex property 'confidence' (needs a .ply output)")
+    g.add_argument("--trim", type=float, default=d["trim"], metavar="CONFIDENCE",
+                   help="remove triangles with a vertex of confidence below CONFIDENCE (0..1): an open surface where nothing was seen "
+                   "(default: no trimming)")
 
 
 def options_from_args(args):
@@ -217,7 +224,8 @@ def _reconstruct(args) -> int:
         return _reconstruct_tiled(args, data, options, out, t0)
     result = reconstruct(data, options=options, seed=args.seed, progress=not args.quiet)
     t_write = time.perf_counter()
-    io.write_mesh(out, result.mesh, inputs=[args.input])
+    fields = None if result.confidence is None or out.suffix.lower() != ".ply" else {"confidence": result.confidence.confidence}
+    io.write_mesh(out, result.mesh, inputs=[args.input], vertex_fields=fields)
     if args.save_model:
         result.surface.save(args.save_model)
     from o3drbf.pipeline import StageTiming, peak_rss_mb
@@ -242,6 +250,8 @@ def _reconstruct_tiled(args, data, options, out, t0) -> int:
     p = options.parameters
     if data.cameras is not None or p.kernel != "multiorder":
         raise ValueError("--tiles needs points with normals and the multiorder kernel; drop --cameras/--kernel")
+    if options.confidence.wanted:
+        raise ValueError("--confidence and --trim are not available with --tiles; drop them or --tiles")
     if data.normals is None:
         log.warning("%s has no normals: estimating and orienting them with Open3D", args.input)
     c = options.constraints
@@ -307,6 +317,14 @@ def summary(result, points, input_path, output_path, model_path=None, seconds=No
     ]
     if colored:
         lines.insert(-2, "  colour           from the input points' colours")
+    if s.confidence:
+        c = s.confidence
+        line = (f"  confidence       mean {c['mean']:.3f}, median {c['median']:.3f}, min {c['min']:.3f} per vertex"
+                + (" (PLY vertex property 'confidence')" if str(output_path).lower().endswith(".ply") else ""))
+        if c.get("trim") is not None:
+            line += (f"\n  trimmed          {c['triangles_removed']:,} triangles with a vertex below {c['trim']:g} removed: "
+                     "an open surface where nothing was seen")
+        lines.insert(-2, line)
     if s.cameras:
         seen = s.points_seen_per_camera or []
         shown = ", ".join(f"{v:,}" for v in seen[:12]) + (", ..." if len(seen) > 12 else "")
@@ -437,6 +455,8 @@ def check_reconstruct_files(args: argparse.Namespace, points=None) -> "Path":
     from o3drbf.io import files as io
 
     out = io.check_output(args.output)
+    if getattr(args, "confidence", False) and out.suffix.lower() != ".ply":
+        raise ValueError(f"--confidence writes a PLY vertex property, but the output is {out.suffix or 'without extension'}; use a .ply output")
     model = getattr(args, "save_model", None)
     if model and Path(model).suffix != ".npz":
         raise ValueError(f"--save-model must end in .npz, got {model!r}")

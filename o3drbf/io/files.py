@@ -585,7 +585,8 @@ def write_points(path: str | os.PathLike, points, normals=None, colors=None, inp
     return path
 
 
-def write_mesh(path: str | os.PathLike, mesh, inputs: Iterable = (), tolerance: float = PRECISION_TOLERANCE) -> Path:
+def write_mesh(path: str | os.PathLike, mesh, inputs: Iterable = (), tolerance: float = PRECISION_TOLERANCE,
+               vertex_fields: dict | None = None) -> Path:
     """Write an Open3D ``TriangleMesh`` atomically (format from the extension).
 
     The temporary file is read back before the rename: the triangle count
@@ -593,16 +594,31 @@ def write_mesh(path: str | os.PathLike, mesh, inputs: Iterable = (), tolerance: 
     the bounding-box diagonal (formats with float32 or few printed digits
     lose coordinates far from the origin).
 
+    Parameters
+    ----------
+    path : str or PathLike
+    mesh : open3d.geometry.TriangleMesh
+    inputs : iterable of paths
+        Files the output must not overwrite.
+    tolerance : float
+    vertex_fields : dict of str -> (V,) array_like, optional
+        Extra per-vertex scalars (e.g. ``{"confidence": c}``), written as
+        ``float`` PLY vertex properties after x y z (double), normals and
+        colours; ``.ply`` only.  Readable with plyfile or
+        ``open3d.t.io.read_point_cloud``; Open3D's mesh readers ignore them.
+
     Raises
     ------
     ValueError
-        The format cannot hold the coordinates (use ``.ply``).
+        The format cannot hold the coordinates (use ``.ply``), or vertex
+        fields for a format other than ``.ply``, or of the wrong length.
     OSError
         Open3D failed, or the file read back differs (disk full...).
     """
     import open3d as o3d
 
     path = check_output(path, inputs=inputs)
+    fields = _vertex_fields(path, mesh, vertex_fields)
     if path.suffix.lower() == ".stl" and not mesh.has_triangle_normals():
         mesh.compute_triangle_normals()
     v = np.asarray(mesh.vertices, dtype=float)
@@ -620,8 +636,62 @@ def write_mesh(path: str | os.PathLike, mesh, inputs: Iterable = (), tolerance: 
                     f"output {path}: the {path.suffix} format moved vertices by up to {err:.3g} "
                     f"({err / diag if diag else float('inf'):.2g} of the mesh size); use .ply (float64) or move the data near the origin"
                 )
+        if fields:
+            cloud = o3d.t.io.read_point_cloud(tmp).point
+            for name, values in fields.items():
+                got = cloud[name].numpy().ravel() if name in cloud else None
+                if got is None or not np.array_equal(got, values):
+                    raise write_failed(path, f"vertex property {name!r} read back differs", os.path.getsize(tmp))
 
     with atomic_path(path, verify=verify) as tmp:
-        if not o3d.io.write_triangle_mesh(tmp, mesh):
+        if fields:
+            _write_ply_fields(tmp, mesh, fields)
+        elif not o3d.io.write_triangle_mesh(tmp, mesh):
             raise write_failed(path, "Open3D could not write it")
     return path
+
+
+def _vertex_fields(path: Path, mesh, vertex_fields: dict | None) -> dict:
+    """The extra vertex properties as float32 arrays, checked against the mesh and the format."""
+    if not vertex_fields:
+        return {}
+    if path.suffix.lower() != ".ply":
+        raise ValueError(f"output {path}: per-vertex properties ({', '.join(vertex_fields)}) need a .ply output; use a .ply file name")
+    n = len(mesh.vertices)
+    out = {}
+    for name, values in vertex_fields.items():
+        if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", str(name)) or name in ("x", "y", "z", "nx", "ny", "nz", "red", "green", "blue"):
+            raise ValueError(f"vertex property name {name!r} is not a new PLY identifier; use letters, digits and '_'")
+        a = np.asarray(values, dtype=np.float32).ravel()
+        if len(a) != n:
+            raise ValueError(f"vertex property {name!r} has {len(a)} values for {n} vertices; give one per vertex")
+        out[str(name)] = a
+    return out
+
+
+def _write_ply_fields(path: str, mesh, fields: dict) -> None:
+    """Binary little-endian PLY: x y z (double), normals (double), colours (uchar), the fields (float), triangles."""
+    v = np.asarray(mesh.vertices, dtype=float)
+    t = np.asarray(mesh.triangles, dtype=np.int64)
+    columns = [("x", "<f8", v[:, 0]), ("y", "<f8", v[:, 1]), ("z", "<f8", v[:, 2])]
+    if mesh.has_vertex_normals():
+        nrm = np.asarray(mesh.vertex_normals, dtype=float)
+        columns += [(k, "<f8", nrm[:, i]) for i, k in enumerate(("nx", "ny", "nz"))]
+    if mesh.has_vertex_colors():
+        rgb = np.round(np.clip(np.asarray(mesh.vertex_colors, dtype=float), 0.0, 1.0) * 255).astype(np.uint8)
+        columns += [(k, "u1", rgb[:, i]) for i, k in enumerate(("red", "green", "blue"))]
+    columns += [(name, "<f4", values) for name, values in fields.items()]
+    vertex = np.empty(len(v), dtype=[(name, dt) for name, dt, _ in columns])
+    for name, _, values in columns:
+        vertex[name] = values
+    face = np.empty(len(t), dtype=[("n", "u1"), ("index", "<i4", (3,))])
+    face["n"] = 3
+    face["index"] = t
+    kind = {"<f8": "double", "u1": "uchar", "<f4": "float"}
+    header = ["ply", "format binary_little_endian 1.0", "comment written by o3drbf", f"element vertex {len(v)}"]
+    header += [f"property {kind[dt]} {name}" for name, dt, _ in columns]
+    header += [f"element face {len(t)}", "property list uchar int vertex_indices", "end_header"]
+    with open(path, "wb") as fh:
+        fh.write(("\n".join(header) + "\n").encode("ascii"))
+        fh.write(vertex.tobytes())
+        fh.write(face.tobytes())
