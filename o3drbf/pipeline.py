@@ -28,8 +28,8 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from o3drbf.constraints.core import EXTERIOR, SPHERE, SURFACE, Constraints, bounding_sphere, exterior_from_normals, surface_constraints
-from o3drbf.options import DEFAULTS, PAPER_VALUES, auto_resolution, auto_surface_count, ConstraintOptions, ExtractOptions, FitOptions, Options, OutlierOptions, ParameterOptions
-from o3drbf.options import ConfidenceOptions
+from o3drbf.options import (DEFAULTS, DENOISE_MIN_NOISE, PAPER_VALUES, auto_resolution, auto_surface_count, ConfidenceOptions, ConstraintOptions,
+                            ExtractOptions, FitOptions, Options, OutlierOptions, ParameterOptions)
 from o3drbf.pointset import PointSet
 from o3drbf.prep.normalize import Normalization, check_spans_volume
 from o3drbf.prep.sampling import mean_spacing
@@ -128,6 +128,13 @@ class ConstraintSet:
     exterior_offset : float
         Box units.
     normals_estimated : bool
+    noise : float
+        The points' noise across the surface (box units; NaN if not estimated).
+    constraint_noise : float
+        The surface constraints' noise after denoising (box units; = ``noise``
+        when they were not moved).
+    denoised : int
+        Surface constraints moved onto local quadric fits (0: none).
     """
 
     constraints: Constraints
@@ -138,6 +145,9 @@ class ConstraintSet:
     bounds: np.ndarray | None = None
     exterior_offset: float = 0.0
     normals_estimated: bool = False
+    noise: float = float("nan")
+    constraint_noise: float = float("nan")
+    denoised: int = 0
 
 
 @dataclass
@@ -190,6 +200,11 @@ class Report:
     surface_constraints, exterior_constraints, sphere_constraints : int
     mean_spacing_box, mean_spacing : float
         Mean spacing of the surface constraints, box and data units.
+    noise, constraint_noise : float
+        Estimated noise across the surface of the points and of the surface
+        constraints after denoising (data units; NaN when not estimated).
+    denoised : int
+        Surface constraints moved onto local quadric fits (``denoise``).
     basis : str
         The kernel, e.g. ``MultiOrder(delta=3.0, tau=0.01)``.
     parameters : dict
@@ -225,6 +240,9 @@ class Report:
     exterior_constraints: int = 0
     sphere_constraints: int = 0
     mean_spacing_box: float = float("nan")
+    noise: float = float("nan")
+    constraint_noise: float = float("nan")
+    denoised: int = 0
     mean_spacing: float = float("nan")
     basis: str = ""
     parameters: dict = field(default_factory=dict)
@@ -514,13 +532,31 @@ def build_constraints(data: PointSet, options: ConstraintOptions = ConstraintOpt
     box = norm.forward(pts)
     idx = surface_constraints(box, count=count, radius=options.surface_radius, seed=seed)
     surf = box[idx]
+    noise, constraint_noise, moved = float("nan"), float("nan"), 0
+    spacing = mean_spacing(surf) if len(surf) > 1 else float("nan")
+    if options.denoise and len(surf) > 10 and len(box) > len(surf):
+        from o3drbf.constraints.parameters import estimate_noise
+        from o3drbf.prep.smoothing import neighbourhood_size, project_to_local_surface
+
+        noise = estimate_noise(box, seed=seed)
+        constraint_noise = noise
+        if options.denoise is True or noise > DENOISE_MIN_NOISE * spacing:
+            k = neighbourhood_size(len(box), len(surf))
+            moved_data, offset, gain = project_to_local_surface(pts, norm.inverse(surf), k=k, tree=data.kdtree, noise=noise / norm.scale)
+            surf, offset = norm.forward(moved_data), offset * norm.scale
+            # what is left of the noise: the fits' own standard deviation (RMS over the constraints)
+            constraint_noise = noise * float(np.sqrt(np.mean(gain * gain)))
+            moved = len(surf)
+            log.info("noise %.3g box units (%.2f spacings): %d surface constraints moved onto local quadric fits of %d points "
+                     "(median |offset| %.3g); their noise %.3g", noise, noise / spacing, moved, k, float(np.median(np.abs(offset))),
+                     constraint_noise)
     seen = None
     if data.cameras is not None:
         from o3drbf.constraints.visibility import exterior_constraints
 
         try:
             ext_data, info = exterior_constraints(
-                pts[idx], data.cameras, offset=options.exterior_offset / norm.scale, ratio=max(options.exterior_ratio, 1e-9),
+                norm.inverse(surf), data.cameras, offset=options.exterior_offset / norm.scale, ratio=max(options.exterior_ratio, 1e-9),
                 seed=seed, occluder=pts, point_camera=None if data.point_camera is None else data.point_camera[idx],
             )
         except ValueError as exc:
@@ -533,7 +569,6 @@ def build_constraints(data: PointSet, options: ConstraintOptions = ConstraintOpt
         n_ext = int(round(options.exterior_ratio * len(idx)))
         ext = exterior_from_normals(surf, data.normals[idx], options.exterior_offset, n_ext, seed=seed, reference=box)
     sph = bounding_sphere(box, options.sphere_count)
-    spacing = mean_spacing(surf) if len(surf) > 1 else float("nan")
     constraints = Constraints.concat(
         Constraints.of_kind(surf, SURFACE, 0.0),
         Constraints.of_kind(ext, EXTERIOR, 0.0),
@@ -544,7 +579,7 @@ def build_constraints(data: PointSet, options: ConstraintOptions = ConstraintOpt
     lo, hi = data.bounds
     pad = 0.05 * float((hi - lo).max())
     return ConstraintSet(constraints, norm, np.asarray(idx), spacing, seen, np.stack([lo - pad, hi + pad]), options.exterior_offset,
-                         bool(data.normals_estimated))
+                         bool(data.normals_estimated), noise, constraint_noise, moved)
 
 
 def choose_parameters(data: PointSet, cset: ConstraintSet, options: ParameterOptions = ParameterOptions(), *, seed: int = 0,
@@ -587,8 +622,9 @@ def choose_parameters(data: PointSet, cset: ConstraintSet, options: ParameterOpt
     if use_auto and "auto" in source.values():
         from o3drbf.constraints.parameters import estimate_noise, parameters_from
 
-        noise = estimate_noise(box, seed=seed)
-        chosen = parameters_from(cset.spacing, noise, cset.normalization.scale)
+        noise = cset.noise if np.isfinite(cset.noise) else estimate_noise(box, seed=seed)
+        # The smoothing follows the noise the constraints carry: after denoising, theirs, not the points'.
+        chosen = parameters_from(cset.spacing, cset.constraint_noise if cset.denoised else noise, cset.normalization.scale)
         log.info("automatic parameters: %s", chosen.reason)
         given = {**{"delta": chosen.delta, "tau": chosen.tau}, **given}
     if isinstance(options.kernel, Kernel):
@@ -885,6 +921,9 @@ def reconstruct(points, normals=None, *, cameras=None, point_camera=None, colors
         sphere_constraints=counts["sphere"],
         mean_spacing_box=cset.spacing,
         mean_spacing=cset.spacing / norm.scale,
+        noise=cset.noise / norm.scale,
+        constraint_noise=cset.constraint_noise / norm.scale,
+        denoised=cset.denoised,
         basis=repr(params.kernel),
         parameters={**params.kernel.params, "lambda_surface": params.lambda_surface, "lambda_exterior": params.lambda_exterior},
         parameter_source=params.source,

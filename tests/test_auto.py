@@ -105,7 +105,7 @@ def test_auto_beats_the_paper_values_on_a_noisy_torus(noisy_torus):
     ch_paper = chamfer(paper.mesh, truth, n_samples=30000)["l1"]
     assert ch_auto < 0.88 * ch_paper, (ch_auto, ch_paper)
     # and the noise it saw is the injected one (0.02 data units; measured 0.0181)
-    assert auto.stats["auto"]["noise"] / auto.stats["auto"]["scale"] == pytest.approx(0.02, rel=0.15)
+    assert auto.report.noise == pytest.approx(0.02, rel=0.15)
 
 
 def test_cli_defaults_to_auto_and_no_auto_gives_the_paper_values(tmp_path, capsys):

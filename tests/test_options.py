@@ -174,11 +174,11 @@ def test_public_names_do_not_shadow_modules():
 def test_automatic_sizes_follow_the_data():
     from o3drbf.options import auto_resolution, auto_surface_count
 
-    assert auto_surface_count(20_000) == 3000 and auto_surface_count(120_000) == 10_000 and auto_surface_count(10**7) == 30_000
+    assert auto_surface_count(12_000) == 3000 and auto_surface_count(120_000) == 20_000 and auto_surface_count(10**7) == 30_000
     assert auto_resolution(0.048) == 128 and auto_resolution(0.015) == 256 and auto_resolution(0.03) == 167
     p, n = Sphere(1.0).sample(48_000, seed=5)
     r = o3drbf.reconstruct(p, n, extract_mesh=False, outliers="none")
-    assert r.report.surface_constraints == pytest.approx(4000, rel=0.1)
+    assert r.report.surface_constraints == pytest.approx(8000, rel=0.1)
 
 
 def test_a_resolution_that_cannot_fit_is_refused_before_any_work(monkeypatch):

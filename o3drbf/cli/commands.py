@@ -66,12 +66,15 @@ def add_option_arguments(parser: argparse.ArgumentParser) -> None:
                    help="iteratively reweighted fit: down-weight surface constraints far from the surface (default: on)")
     g = parser.add_argument_group("constraints")
     g.add_argument("--surface-count", type=count_or_auto, default=d["surface_count"], metavar="auto|N",
-                   help="Poisson-disc subsample to about N surface constraints; auto: points / 12, between 3,000 and 30,000 (default %(default)s)")
+                   help="Poisson-disc subsample to about N surface constraints; auto: points / 6, between 3,000 and 30,000 (default %(default)s)")
     g.add_argument("--surface-radius", type=float, default=d["surface_radius"], help="Poisson-disc radius (box units) instead of --surface-count")
     g.add_argument("--all-points", action="store_true", help="use every point as a surface constraint (no subsampling)")
     g.add_argument("--exterior-ratio", type=float, default=d["exterior_ratio"], help="exterior constraints per surface constraint (default %(default)s)")
     g.add_argument("--exterior-offset", type=float, default=d["exterior_offset"], help="distance of exterior constraints from the surface, box units (default %(default)s)")
     g.add_argument("--sphere-count", type=int, default=d["sphere_count"], help="exterior constraints on a sphere around the data (default %(default)s)")
+    g.add_argument("--denoise", type=_auto_or_bool, default=d["denoise"], metavar="auto|on|off",
+                   help="move the surface constraints onto local quadric fits of all the points; auto: when the noise "
+                   "exceeds 0.05 constraint spacings (default %(default)s)")
     g = parser.add_argument_group("solve and mesh")
     g.add_argument("--solver", default=d["solver"], choices=list(SOLVER_METHODS),
                    help="auto: dense up to a few thousand constraints, fast above (default %(default)s)")
@@ -85,6 +88,18 @@ def add_option_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--trim", type=float, default=d["trim"], metavar="CONFIDENCE",
                    help="remove triangles with a vertex of confidence below CONFIDENCE (0..1): an open surface where nothing was seen "
                    "(default: no trimming)")
+
+
+def _auto_or_bool(text: str):
+    """argparse type: "auto", or on/off (yes/no, true/false) as a bool."""
+    t = str(text).strip().lower()
+    if t == "auto":
+        return "auto"
+    if t in ("on", "yes", "true", "1"):
+        return True
+    if t in ("off", "no", "false", "0"):
+        return False
+    raise argparse.ArgumentTypeError(f"expected auto, on or off, got {text!r}")
 
 
 def options_from_args(args):
@@ -298,6 +313,8 @@ def summary(result, points, input_path, output_path, model_path=None, seconds=No
         f"  outliers         {s.outliers_removed:,} removed ({s.outlier_method}: {s.outlier_reason})",
         f"  constraints      {s.surface_constraints:,} surface, {s.exterior_constraints:,} exterior, {s.sphere_constraints:,} sphere",
         f"  mean spacing     {s.mean_spacing:.4g} (data units), {s.mean_spacing_box:.4f} in the 2x2x2 box",
+        *([f"  denoised         {s.denoised:,} surface constraints moved onto local fits of the points "
+           f"(noise {s.noise:.2g} -> {s.constraint_noise:.2g} data units)"] if s.denoised else []),
         f"  basis            {s.basis}",
         f"  parameters       {_parameters_line(s)}",
         f"  solve            {s.solver}, {s.solve_seconds:.2f} s, relative residual {s.residual:.1e}"

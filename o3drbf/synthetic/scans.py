@@ -23,7 +23,7 @@ from o3drbf.validation import check_number
 from o3drbf.cameras.model import Camera, save_cameras_json
 from o3drbf.mesh.arrays import mesh_arrays, raycasting_scene
 
-__all__ = ["range_scans", "camera_ring", "voxel_shell", "VoxelShell", "write_scan_json"]
+__all__ = ["range_scans", "misregister", "camera_ring", "voxel_shell", "VoxelShell", "write_scan_json"]
 
 
 def _basis(up) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -187,6 +187,58 @@ def range_scans(
         points = np.vstack([points, extra])
         owner.append(cam_of)
     return points, np.concatenate(owner), cams
+
+
+def misregister(points, point_camera, cameras, error: float, seed: int = 0):
+    """Each scan moved by a small rigid error, as a registration error would leave it.
+
+    As in Berger et al.'s benchmark (``registration_error``): every camera's
+    points and the camera itself move together by one rigid motion about the
+    scan's centroid, a rotation of ``error / r`` radians about a random axis
+    (``r`` the scan's radius about its centroid, so its farthest points move
+    by ``error``) followed by a translation of length ``error`` in a random
+    direction.  Points of no camera (``point_camera < 0``) stay.
+
+    Parameters
+    ----------
+    points : (N, 3) array
+    point_camera : (N,) int array
+    cameras : list of Camera
+    error : float
+        Displacement scale (data units), e.g. 0.005 of the bounding-box diagonal.
+    seed : int
+
+    Returns
+    -------
+    points : (N, 3) array
+        The moved points (a copy).
+    cameras : list of Camera
+        The cameras at their (wrong) registered poses.
+    """
+    from dataclasses import replace
+
+    from scipy.spatial.transform import Rotation
+
+    error = check_number("error", error, low=0.0)
+    points = np.array(points, dtype=float)
+    owner = np.asarray(point_camera)
+    rng = np.random.default_rng(seed)
+    moved = []
+    for k, cam in enumerate(cameras):
+        sel = owner == k
+        axis, shift = rng.normal(size=3), rng.normal(size=3)
+        if not sel.any() or error == 0:
+            moved.append(cam)
+            continue
+        c = points[sel].mean(axis=0)
+        radius = float(np.linalg.norm(points[sel] - c, axis=1).max()) or 1.0
+        Q = Rotation.from_rotvec(axis / np.linalg.norm(axis) * error / radius).as_matrix()
+        s = shift / np.linalg.norm(shift) * error
+        points[sel] = (points[sel] - c) @ Q.T + c + s
+        # x_cam = R X + t with X = Q^T (X' - c - s) + c
+        R = cam.R @ Q.T
+        moved.append(replace(cam, R=R, t=cam.t + cam.R @ c - R @ (c + s)))
+    return points, moved
 
 
 @dataclass(frozen=True, eq=False)
