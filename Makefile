@@ -30,6 +30,7 @@ bench-paper: $(SETUP)
 figures: $(SETUP)
 	$(PY) samples/demo.py --out $(OUT)/figures
 	mkdir -p docs/images && cp $(OUT)/figures/demo.png docs/images/demo.png
+	$(PY) scripts/run_notebook.py docs/quickstart.ipynb --figure docs/images/quickstart.png
 	$(PY) -m o3drbf.viewers.sample_scan $(OUT)/figures/tori_scan.json
 	$(PY) -m o3drbf.cli view $(OUT)/figures/tori_scan.json --screenshot docs/images/viewer.png --zoom 0.5
 	$(PY) samples/generate.py $(OUT)/figures/samples

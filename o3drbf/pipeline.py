@@ -308,6 +308,46 @@ class Reconstruction:
     options: Options = field(default_factory=Options)
     confidence: object = None
 
+    def plot(self, *, constraints: bool = False, compare: dict | None = None, title: str | None = None, **options):
+        """Show the mesh with PyVista: inline in Jupyter (static PNG, or interactive with trame), else a window or offscreen.
+
+        Parameters
+        ----------
+        constraints : bool
+            Draw the surface (red) and exterior (blue) constraints over the mesh
+            (not the bounding-sphere ones, which would shrink the mesh in the frame).
+        compare : dict of str to open3d.geometry.TriangleMesh, optional
+            Other reconstructions of the same data, one panel each beside this one (linked cameras).
+        title : str, optional
+            Default: "o3drbf (<triangles> triangles)".
+        **options
+            ``show``, ``screenshot`` (a .png also written), ``backend``,
+            ``window_size``, ``view``, ``viewup``: see :func:`o3drbf.pictures.plot`.
+
+        Returns
+        -------
+        pyvista.Plotter or None
+            The open plotter with ``show=False``, else None.
+
+        Raises
+        ------
+        ValueError
+            No mesh (``reconstruct(..., extract_mesh=False)``): mesh it first with :func:`mesh_surface`.
+        """
+        from o3drbf.pictures import plot
+
+        if self.mesh is None:
+            raise ValueError("plot: this reconstruction has no mesh (extract_mesh=False); mesh it with o3drbf.mesh_surface first")
+        c = self.constraints
+        return plot(
+            self.mesh,
+            points=c.select(SURFACE) if constraints else None,
+            exterior=c.select(EXTERIOR) if constraints else None,
+            compare=compare,
+            title=title if title is not None else f"o3drbf ({len(self.mesh.triangles):,} triangles)",
+            **options,
+        )
+
     @property
     def stats(self) -> Report:
         """The report (kept for code written against the older dict: ``stats["points"]`` works)."""

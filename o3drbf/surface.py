@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from o3drbf.validation import as_points
+from o3drbf.validation import as_points, shown
 from o3drbf.io.files import atomic_path
 from o3drbf.rbf.kernels import Kernel, make_kernel
 from o3drbf.prep.normalize import Normalization
@@ -219,7 +219,7 @@ class ImplicitSurface(DataCoordinates):
             raise bad("header.format", f"is {header.get('format')!r}, expected {_FORMAT!r}")
         version = header.get("version")
         if not isinstance(version, int) or isinstance(version, bool) or version < 1:
-            raise bad("header.version", f"must be a whole number >= 1, got {version!r}")
+            raise bad("header.version", f"must be a whole number >= 1, got {shown(version)}")
         if version > _VERSION:
             raise ValueError(f"{path} was written by a newer o3drbf (version {version}); upgrade o3drbf to read it")
         kdict = header.get("kernel")
@@ -263,7 +263,7 @@ class ImplicitSurface(DataCoordinates):
         center = floats("center", (3,))
         scale = float(floats("scale", ())[()])
         if scale <= 0:
-            raise bad("scale", f"must be > 0, got {scale!r}")
+            raise bad("scale", f"must be > 0, got {shown(scale)}")
         # Normalization stored as arrays too, so the round trip is bit-exact.
         norm = Normalization(center=center, scale=scale)
         return cls(kernel, centres, weights, poly, norm, metadata)

@@ -11,7 +11,40 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["as_points", "as_vectors", "as_rgb", "check_number", "per_point", "check_choice"]
+__all__ = ["as_points", "as_vectors", "as_rgb", "check_number", "per_point", "check_choice", "shown"]
+
+
+def shown(value: Any, digits: int = 6) -> str:
+    """A value as a message shows it: numbers to at most ``digits`` significant digits, no NumPy wrappers.
+
+    ``shown(np.float64(2.912149660512057))`` is ``"2.91215"``, ``shown(0.5)``
+    ``"0.5"``, ``shown(np.array([1.0, 2.25]))`` ``"[1.0, 2.25]"``; anything
+    else is its ``repr`` (strings keep their quotes).
+
+    Parameters
+    ----------
+    value : Any
+        A number (Python or NumPy scalar), a sequence or array of them, or anything.
+    digits : int
+        Significant digits kept.
+
+    Returns
+    -------
+    str
+    """
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    elif isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, bool) or isinstance(value, int):
+        return repr(value)
+    if isinstance(value, float):
+        short = format(value, f".{digits}g")
+        return repr(value) if not math.isfinite(value) or float(short) == value else short
+    if isinstance(value, (list, tuple)):
+        inner = ", ".join(shown(v, digits) for v in value)
+        return f"({inner},)" if isinstance(value, tuple) and len(value) == 1 else (f"({inner})" if isinstance(value, tuple) else f"[{inner}]")
+    return repr(value)
 
 
 def as_points(points: Any, name: str = "points", min_count: int = 1, allow_duplicates: bool = True) -> np.ndarray:
@@ -42,14 +75,14 @@ def as_points(points: Any, name: str = "points", min_count: int = 1, allow_dupli
     if bad.any():
         idx = np.flatnonzero(bad)
         raise ValueError(
-            f"{name} has {idx.size} row(s) with NaN or infinite coordinates (first at index {idx[0]}: {arr[idx[0]].tolist()})"
+            f"{name} has {idx.size} row(s) with NaN or infinite coordinates (first at index {idx[0]}: {shown(arr[idx[0]])})"
         )
     if not allow_duplicates:
         _, first, counts = np.unique(arr, axis=0, return_index=True, return_counts=True)
         if (counts > 1).any():
             k = int((counts > 1).sum())
             i = int(first[np.argmax(counts > 1)])
-            raise ValueError(f"{name} has {k} duplicated point(s) (e.g. {arr[i].tolist()} at index {i}); remove duplicates first")
+            raise ValueError(f"{name} has {k} duplicated point(s) (e.g. {shown(arr[i])} at index {i}); remove duplicates first")
     return np.ascontiguousarray(arr)
 
 
@@ -76,20 +109,20 @@ def check_number(
     integer: bool = False,
 ) -> float:
     """Check a scalar parameter is a finite number in ``[low, high]`` (``(low, high]`` if ``low_open``)."""
-    lo = "-inf" if low is None else repr(low)
-    hi = "inf" if high is None else repr(high)
+    lo = "-inf" if low is None else shown(low)
+    hi = "inf" if high is None else shown(high)
     valid = f"{'(' if low_open else '['}{lo}, {hi}]"
     if isinstance(value, bool):
-        raise ValueError(f"{name} must be a number in {valid}, got {value!r}")
+        raise ValueError(f"{name} must be a number in {valid}, got {shown(value)}")
     try:
         x = float(value)
     except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number in {valid}, got {value!r}") from None
+        raise ValueError(f"{name} must be a number in {valid}, got {shown(value)}") from None
     if not math.isfinite(x) or (low is not None and (x < low or (low_open and x == low))) or (high is not None and x > high):
-        raise ValueError(f"{name} must be in {valid}, got {value!r}")
+        raise ValueError(f"{name} must be in {valid}, got {shown(value)}")
     if integer:
         if x != int(x):
-            raise ValueError(f"{name} must be a whole number in {valid}, got {value!r}")
+            raise ValueError(f"{name} must be a whole number in {valid}, got {shown(value)}")
         return int(x)
     return x
 
@@ -105,13 +138,13 @@ def per_point(name: str, value: Any, n: int, low: float = 0.0) -> np.ndarray:
     bad = ~np.isfinite(arr) | (arr < low)
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
-        raise ValueError(f"{name} must be finite and >= {low}; entry {i} is {arr[i]!r}")
+        raise ValueError(f"{name} must be finite and >= {shown(low)}; entry {i} is {shown(arr[i])}")
     return arr
 
 
 def check_choice(name: str, value: Any, choices) -> str:
     if value not in choices:
-        raise ValueError(f"{name} must be one of {', '.join(map(repr, choices))}, got {value!r}")
+        raise ValueError(f"{name} must be one of {', '.join(map(repr, choices))}, got {shown(value)}")
     return value
 
 

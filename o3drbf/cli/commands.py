@@ -15,6 +15,8 @@ import argparse
 import logging
 import sys
 import time
+import warnings
+from contextlib import contextmanager
 from pathlib import Path
 
 from o3drbf.io.files import MESH_FORMATS
@@ -362,15 +364,13 @@ def _main(argv: list[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     _check_args(parser, args)
-    logging.basicConfig(
-        level=logging.INFO if getattr(args, "verbose", False) else logging.WARNING,
-        format="o3drbf: %(message)s",
-        stream=sys.stderr,
-    )
+    logging.basicConfig(level=logging.WARNING, format="o3drbf: %(message)s", stream=sys.stderr)
     from tqdm.contrib.logging import logging_redirect_tqdm
 
     try:
-        with logging_redirect_tqdm():  # log lines never break into a progress bar
+        # log lines (warnings too) never break into a progress bar; -v shows
+        # o3drbf's steps, not the INFO chatter of Dask and other libraries
+        with logging_redirect_tqdm(), _warnings_as_log_lines(), _verbose(getattr(args, "verbose", False)):
             return _dispatch(parser, args)
     except MemoryError as exc:
         print(f"o3drbf: error: {_memory_message(exc)}", file=sys.stderr)
@@ -391,6 +391,33 @@ def _main(argv: list[str] | None) -> int:
         )
         return 1
     return 2
+
+
+@contextmanager
+def _verbose(on: bool):
+    """o3drbf's logger at INFO while a command runs (restored after: main() may be called again)."""
+    previous = log.level
+    if on:
+        log.setLevel(logging.INFO)
+    try:
+        yield
+    finally:
+        log.setLevel(previous)
+
+
+@contextmanager
+def _warnings_as_log_lines():
+    """Python warnings as one log line each (``o3drbf: ConvergenceWarning: ...``), through the logging the bars respect."""
+    previous = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        log.warning("%s: %s", category.__name__, _one_line(message) if isinstance(message, BaseException) else " ".join(str(message).split()))
+
+    warnings.showwarning = show
+    try:
+        yield
+    finally:
+        warnings.showwarning = previous
 
 
 def _dispatch(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:

@@ -35,7 +35,7 @@ from scipy.spatial import cKDTree
 from o3drbf.cameras.model import as_cameras
 from o3drbf.mesh.arrays import mesh_arrays, raycasting_scene
 from o3drbf.prep.sampling import mean_spacing
-from o3drbf.validation import as_points, check_number
+from o3drbf.validation import as_points, check_number, shown
 
 __all__ = ["visibility", "exterior_constraints", "occupancy_mesh", "seen_by"]
 
@@ -211,7 +211,7 @@ def _resolve_occluder(pts, occluder, voxel_size, margin, tree=None):
     if isinstance(occluder, str):
         if occluder not in ("voxels", "none"):
             raise ValueError(
-                f"occluder must be 'voxels', 'none', an (K, 3) array of points or an Open3D mesh, got {occluder!r}"
+                f"occluder must be 'voxels', 'none', an (K, 3) array of points or an Open3D mesh, got {shown(occluder) if not isinstance(occluder, np.ndarray) else f'an array of shape {occluder.shape}'}"
             )
         ref = pts
     elif hasattr(occluder, "triangles") or hasattr(occluder, "triangle"):

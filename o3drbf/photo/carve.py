@@ -46,7 +46,7 @@ import numpy as np
 from o3drbf.mesh.arrays import mesh_arrays, raycasting_scene
 from o3drbf.options import CARVE_DEFAULTS
 from o3drbf.progress import progress_bar
-from o3drbf.validation import as_rgb, check_number
+from o3drbf.validation import as_rgb, check_number, shown
 
 __all__ = [
     "CarveResult",
@@ -277,7 +277,7 @@ def silhouettes(
     bg = _background(background)
     threshold = check_number("threshold", threshold, low=0.0, high=1.0, low_open=True)
     if threshold >= 1.0:
-        raise ValueError(f"threshold must be in (0.0, 1.0), got {threshold!r}")
+        raise ValueError(f"threshold must be in (0.0, 1.0), got {shown(threshold)}")
     min_area = check_number("min_area", min_area, low=0, integer=True)
     masks = []
     for i, im in enumerate(images):

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from o3drbf.validation import as_points
+from o3drbf.validation import as_points, shown
 
 __all__ = ["Normalization", "check_spans_volume", "extent_ratios", "MIN_EXTENT_RATIO"]
 
@@ -52,9 +52,9 @@ def check_spans_volume(points, min_ratio: float = MIN_EXTENT_RATIO) -> np.ndarra
     try:
         min_ratio = float(min_ratio)
     except (TypeError, ValueError):
-        raise ValueError(f"min_ratio must be a number in (0, 1), got {min_ratio!r}") from None
+        raise ValueError(f"min_ratio must be a number in (0, 1), got {shown(min_ratio)}") from None
     if not 0 < min_ratio < 1:
-        raise ValueError(f"min_ratio must be in (0, 1), got {min_ratio!r}")
+        raise ValueError(f"min_ratio must be in (0, 1), got {shown(min_ratio)}")
     if ratios[2] < min_ratio:
         what = "a line" if ratios[1] < min_ratio else "a plane"
         raise ValueError(

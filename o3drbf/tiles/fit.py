@@ -39,7 +39,7 @@ from o3drbf.surface import ImplicitSurface
 from o3drbf.tiles.cluster import run_tasks, tile_client
 from o3drbf.tiles.partition import Partition, kd_split
 from o3drbf.tiles.surface import TiledSurface
-from o3drbf.validation import as_points, as_vectors, check_number
+from o3drbf.validation import as_points, as_vectors, check_number, shown
 
 __all__ = ["fit_tiled", "tile_count", "TILE_DEFAULTS"]
 
@@ -59,7 +59,7 @@ def tile_count(n_points: int, tiles="auto", points_per_tile: int = TILE_DEFAULTS
     """
     if isinstance(tiles, str):
         if tiles != "auto":
-            raise ValueError(f"tiles must be 'auto' or a positive integer, got {tiles!r}")
+            raise ValueError(f"tiles must be 'auto' or a positive integer, got {shown(tiles)}")
         ppt = check_number("points_per_tile", points_per_tile, low=100, integer=True)
         return max(1, math.ceil(n_points / ppt))
     return check_number("tiles", tiles, low=1, high=max(1, n_points // 10), integer=True)

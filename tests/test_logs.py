@@ -1,0 +1,159 @@
+"""What the command line prints: numbers rounded to meaningful digits, no NumPy reprs, log lines never inside a bar.
+
+One subprocess runs every command (reconstruct with normals, without, with
+cameras and --tiles; compare; view; photos) with -v and the progress bars
+on, its stdout and stderr going to files as on a terminal without a TTY.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from conftest import REPO
+
+#: A decimal number (with an optional exponent) in printed text.
+NUMBER = re.compile(r"(?<![\w.])[-+]?(\d+\.\d+|\.\d+|\d+)(e[-+]?\d+)?(?![\w.])", re.I)
+
+
+def significant_digits(token: str) -> int:
+    mantissa = re.split(r"[eE]", token.lstrip("+-"))[0]
+    digits = mantissa.replace(".", "").lstrip("0")
+    return len(digits.rstrip("0")) if "." not in mantissa else len(digits)
+
+
+def too_precise(line: str, most: int = 6) -> list[str]:
+    """The decimal numbers in ``line`` printed with more than ``most`` significant digits (integers are exact: allowed)."""
+    return [m.group(0) for m in NUMBER.finditer(line) if "." in m.group(1) and significant_digits(m.group(0)) > most]
+
+
+def test_the_digit_rule_itself():
+    assert too_precise("delta=2.912149660512057, tau 0.0153") == ["2.912149660512057"]
+    assert too_precise("residual 1.4e-14, 53,484 triangles, 0.000712 s, 127.0.0.1, 1.23457e+08") == []
+    assert too_precise("mean 0.0036124567 in the box") == ["0.0036124567"]
+
+
+DRIVER = textwrap.dedent(
+    """
+    import sys, time, warnings
+    import o3drbf.pipeline
+    from o3drbf.cli.commands import main
+
+    original = o3drbf.pipeline.reconstruct
+
+    def reconstruct(*args, **kwargs):  # a warning in the middle of a command: it must become one log line
+        warnings.warn("a library warning,\\n  on two lines", RuntimeWarning)
+        return original(*args, **kwargs)
+
+    o3drbf.pipeline.reconstruct = reconstruct
+    d = sys.argv[1]
+    runs = [
+        ["reconstruct", f"{d}/torus.ply", "-o", f"{d}/a.ply", "--surface-count", "300", "--resolution", "24", "-v"],
+        ["reconstruct", f"{d}/torus.xyz", "-o", f"{d}/b.ply", "--surface-count", "300", "--resolution", "24", "-v", "--save-model", f"{d}/b.npz"],
+        ["reconstruct", f"{d}/scan.json", "-o", f"{d}/c.ply", "--surface-count", "300", "--resolution", "24", "-v"],
+        ["reconstruct", f"{d}/torus.ply", "-o", f"{d}/d.ply", "--tiles", "2", "--scheduler", "synchronous", "--resolution", "24", "-v"],
+        ["compare", f"{d}/small.ply", "--methods", "multiorder,poisson", "--resolution", "24",
+         "--poisson-depth", "5", "-o", f"{d}/cmp"],
+        ["view", f"{d}/scan.json", "--screenshot", f"{d}/v.png", "--resolution", "20", "--surface-count", "200", "--poisson-depth", "5",
+         "--window-size", "400", "300"],
+        ["photos", f"{d}/photos", "--calibration", f"{d}/photos/par.txt", "-o", f"{d}/p.ply", "--voxels", "24",
+         "--surface-count", "300", "--resolution", "24", "-v"],
+    ]
+    for argv in runs:
+        print(f"=== {argv[0]}", flush=True)
+        print(f"=== {argv[0]}", file=sys.stderr, flush=True)
+        t0 = time.perf_counter()
+        code = main(argv)
+        print(f"=== exit {code} ({time.perf_counter() - t0:.1f} s)", flush=True)
+    """
+)
+
+
+@pytest.fixture(scope="module")
+def printed(tmp_path_factory):
+    """(stdout, stderr) of every command, run once."""
+    import open3d as o3d
+    import skimage.io
+
+    from o3drbf.io.files import write_points
+    from o3drbf.synthetic.render import render_views
+    from o3drbf.synthetic.scans import camera_ring, range_scans, write_scan_json
+    from o3drbf.synthetic.shapes import Torus
+
+    d = tmp_path_factory.mktemp("logs")
+    p, n = Torus(0.6, 0.25).sample(2000, noise=0.002, seed=1)
+    write_points(d / "torus.ply", p, n)
+    write_points(d / "torus.xyz", p)
+    write_points(d / "small.ply", p[::3], n[::3])
+    torus = o3d.geometry.TriangleMesh.create_torus(0.6, 0.25, 48, 24)
+    points, point_camera, cameras = range_scans(torus, n_views=3, width=48, height=36, noise=0.002, seed=0)
+    write_scan_json(d / "scan.json", points, cameras, point_camera)
+    sphere = o3d.geometry.TriangleMesh.create_sphere(1.0, resolution=30)
+    sphere.vertex_colors = o3d.utility.Vector3dVector(0.5 + 0.4 * np.asarray(sphere.vertices))
+    cams = camera_ring((0, 0, 0), 1.0, n_views=8, elevation=30, width=80, height=60, fov=50)
+    (d / "photos").mkdir()
+    lines = [str(len(cams))]
+    for i, (cam, view) in enumerate(zip(cams, render_views(sphere, cams))):
+        skimage.io.imsave(d / "photos" / f"img{i:02d}.png", (np.clip(view.image, 0, 1) * 255).round().astype(np.uint8), check_contrast=False)
+        lines.append(f"img{i:02d}.png " + " ".join(f"{x:.17g}" for x in np.concatenate([cam.K.ravel(), cam.R.ravel(), cam.t])))
+    (d / "photos" / "par.txt").write_text("\n".join(lines) + "\n")
+    (d / "photos" / "README.txt").write_text("The bounding box is\n(-1.25 -1.25 -1.25)\n(1.25 1.25 1.25)\n")
+
+    env = dict(os.environ, PYTHONPATH=str(REPO), O3DRBF_NO_PROGRESS="0", OMP_NUM_THREADS="2")
+    proc = subprocess.run([sys.executable, "-c", DRIVER, str(d)], capture_output=True, text=True, env=env, timeout=300, cwd=d)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stdout.count("=== exit 0 ") == 7, proc.stdout[-3000:] + proc.stderr[-3000:]
+    return proc.stdout, proc.stderr
+
+
+def segments(text: str) -> list[str]:
+    """What a terminal shows as separate pieces: text between carriage returns and newlines."""
+    return [s for s in re.split(r"[\r\n]", text) if s.strip()]
+
+
+def test_every_command_printed_and_showed_bars(printed):
+    out, err = printed
+    for command in ("reconstruct", "compare", "view", "photos"):
+        assert f"=== {command}" in out
+    assert "o3drbf reconstruct --tiles:" in out and "o3drbf photos:" in out and "o3drbf view:" in out
+    assert "it/s" in err or "pt/s" in err or "tile/s" in err, err[-2000:]  # bars were on
+    assert "o3drbf: solver:" in err  # -v log lines
+
+
+def test_numbers_are_rounded_and_no_numpy_reprs(printed):
+    for text in printed:
+        for line in segments(text):
+            assert not too_precise(line), line
+            assert "np." not in line and "array(" not in line and "dtype=" not in line, line
+
+
+def test_log_lines_never_share_a_line_with_a_bar(printed):
+    _, err = printed
+    logged = [s for s in segments(err) if "o3drbf:" in s]
+    assert len(logged) > 10
+    for piece in logged:
+        assert piece.startswith("o3drbf: "), piece  # a log line glued to a bar would start with the bar
+
+
+def test_warnings_become_one_log_line(printed):
+    _, err = printed
+    lines = [s for s in segments(err) if "RuntimeWarning" in s]
+    assert lines, err[-2000:]  # shown once (Python's default filter), as one line
+    assert all(s == "o3drbf: RuntimeWarning: a library warning, on two lines" for s in lines), lines
+
+
+def test_shown_rounds_numbers_and_drops_numpy_wrappers():
+    from o3drbf.validation import check_number, shown
+
+    assert shown(np.float64(2.912149660512057)) == "2.91215"
+    assert shown(np.int64(7)) == "7" and shown(0.5) == "0.5" and shown(3.0) == "3.0" and shown(float("nan")) == "nan"
+    assert shown(np.array([1.0, 1 / 3])) == "[1.0, 0.333333]" and shown((np.float32(0.1),)) == "(0.1,)"
+    assert shown("abc") == "'abc'"
+    with pytest.raises(ValueError, match=r"^delta must be in \(0, inf\], got -2\.91215$"):
+        check_number("delta", np.float64(-2.912149660512057), low=0, low_open=True)
