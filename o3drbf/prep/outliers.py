@@ -300,14 +300,14 @@ def isolated_points(
         isolated |= np.bincount(labels)[labels] < min_component
     kk = min(k, n - 1)
     if kk >= 3:
-        _, idx = tree.query(pts, k=kk + 1)
+        _, idx = tree.query(pts, k=kk + 1, workers=-1)
         nb = pts[idx[:, 1:]]  # (N, k, 3), the point itself excluded
         centroid = nb.mean(axis=1)
         q = nb - centroid[:, None, :]
-        cov = np.einsum("nki,nkj->nij", q, q) / kk
+        cov = np.matmul(q.transpose(0, 2, 1), q) / kk  # batched BLAS: several times faster than einsum here
         _, vecs = np.linalg.eigh(cov)
         normal = vecs[:, :, 0]
-        rms = np.sqrt(np.maximum(np.einsum("nki,ni->nk", q, normal) ** 2, 0).mean(axis=1))
+        rms = np.sqrt((np.matmul(q, normal[:, :, None])[..., 0] ** 2).mean(axis=1))
         offset = np.abs(np.einsum("ni,ni->n", pts - centroid, normal))
         isolated |= (offset > off_surface * rms) & (offset > off_spacings * spacing)
     return isolated
