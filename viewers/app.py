@@ -51,7 +51,7 @@ import numpy as np
 
 from o3drbf.options import VIEWER_DISPLAY
 from o3drbf.viewers.geometry import camera_frusta, look_at, subsample, view_up, wind_like_normals
-from o3drbf.viewers.keys import own_keys, pick_under_mouse, press_key
+from o3drbf.viewers.keys import LayerToggles, own_keys, pick_under_mouse, press_key
 from o3drbf.viewers.inputs import ViewInput, load_view_input, model_constraints
 from o3drbf.viewers.refit import FitParams, FitResult, Refitter, pick_values
 
@@ -198,19 +198,27 @@ def main_view(args: argparse.Namespace) -> int:
         if value is not None:
             raise ValueError(f"{flag} needs a mesh with faces as INPUT; {args.input} is {'fitted (--refit)' if args.refit else 'not a mesh'}")
     options = dict(poisson=not args.no_poisson, poisson_depth=depth, window_size=(w, h), save_prefix=args.save_prefix, show_sphere=args.show_sphere, hide=tuple(args.hide), up=args.up, zoom=args.zoom, max_points=args.max_points)
+    if _screenshot_only(shot, lambda: ViewerApp.offscreen(data, params, **options), lambda app: app.fit_now()):
+        return 0
+    app = ViewerApp.interactive(data, params, script=script, **options)
+    return app.run()
+
+
+def _screenshot_only(shot: Path | None, make_offscreen, prepare=None) -> bool:
+    """With ``--screenshot``: render offscreen, write the picture, report; False when a window is wanted (and possible)."""
     if shot is not None:
-        app = ViewerApp.offscreen(data, params, **options)
+        app = make_offscreen()
         try:
-            app.fit_now()
+            if prepare is not None:
+                prepare(app)
             app.save_screenshot(shot)
             print(f"o3drbf view: {app.describe()}; wrote {shot}")
         finally:
             app.close()
-        return 0
+        return True
     if sys.platform.startswith("linux") and not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
         raise RuntimeError("no display for the interactive viewer; use --screenshot OUT.png (offscreen) or run it under xvfb-run")
-    app = ViewerApp.interactive(data, params, script=script, **options)
-    return app.run()
+    return False
 
 
 def _view_mesh(args: argparse.Namespace, data: ViewInput, shot: Path | None) -> int:
@@ -229,16 +237,8 @@ def _view_mesh(args: argparse.Namespace, data: ViewInput, shot: Path | None) -> 
         shot = _check_png(str(shot), [args.input, args.distance_to])
     hide = tuple(h for h in args.hide if h in {name for _, name, _, _ in MESH_LAYERS})
     options = dict(color_by=args.color_by, other=other, up=args.up, zoom=args.zoom, save_prefix=args.save_prefix, hide=hide, window_size=tuple(args.window_size))
-    if shot is not None:
-        app = MeshViewerApp.offscreen(data, **options)
-        try:
-            app.save_screenshot(shot)
-            print(f"o3drbf view: {app.describe()}; wrote {shot}")
-        finally:
-            app.close()
+    if _screenshot_only(shot, lambda: MeshViewerApp.offscreen(data, **options)):
         return 0
-    if sys.platform.startswith("linux") and not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
-        raise RuntimeError("no display for the interactive viewer; use --screenshot OUT.png (offscreen) or run it under xvfb-run")
     script = parse_script(args.script) if args.script else None
     return MeshViewerApp.interactive(data, **options).run(script)
 
@@ -304,7 +304,7 @@ def _poly_from_mesh(mesh):
     return poly
 
 
-class ViewerApp:
+class ViewerApp(LayerToggles):
     """The viewer's scene and behaviour on a ``pyvista.Plotter``.
 
     Every user action is a plain method (slider callbacks, layer toggles,
@@ -625,22 +625,6 @@ class ViewerApp:
             self._say(f"{name} is fixed for a saved model")
             return None
         return self.on_slider(name, pos)
-
-    def set_layer(self, name: str, shown: bool) -> None:
-        """Show or hide one layer (see :data:`LAYERS`)."""
-        if name not in self.visible:
-            raise ValueError(f"unknown layer {name!r}; valid: {', '.join(self.visible)}")
-        self.visible[name] = bool(shown)
-        button = self.actors.get(f"button_{name}")
-        if button is not None:
-            button.GetRepresentation().SetState(int(bool(shown)))
-        self._apply_visibility()
-        self._render()
-
-    def toggle_layer(self, name: str) -> bool:
-        """Flip one layer; returns whether it is now shown."""
-        self.set_layer(name, not self.visible.get(name, False))
-        return self.visible[name]
 
     def key_bindings(self) -> dict:
         """Key -> action: the layer keys of :data:`LAYERS`, m save mesh, k screenshot, p pick."""

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from typing import Callable
 
-__all__ = ["VTK_KEYS_KEPT", "own_keys", "press_key", "pick_under_mouse"]
+__all__ = ["VTK_KEYS_KEPT", "own_keys", "press_key", "pick_under_mouse", "LayerToggles"]
 
 #: VTK's built-in character keys left working: r reset the camera,
 #: w / s wireframe / surface, f fly to the point under the mouse, q quit.
@@ -85,3 +85,28 @@ def pick_under_mouse(plotter) -> None:
     iren = plotter.iren
     x, y = iren.interactor.GetEventPosition()
     iren.interactor.GetPicker().Pick(x, y, 0, iren.get_poked_renderer(x, y))
+
+
+class LayerToggles:
+    """Show/hide named layers, kept in step with their check-box buttons.
+
+    For a viewer with ``visible`` (layer name -> shown), ``actors`` (where a
+    layer's button is ``"button_<name>"``), ``_apply_visibility()`` and
+    ``_render()``.
+    """
+
+    def set_layer(self, name: str, shown: bool) -> None:
+        """Show or hide one layer."""
+        if name not in self.visible:
+            raise ValueError(f"unknown layer {name!r}; valid: {', '.join(self.visible)}")
+        self.visible[name] = bool(shown)
+        button = self.actors.get(f"button_{name}")
+        if button is not None:
+            button.GetRepresentation().SetState(int(bool(shown)))
+        self._apply_visibility()
+        self._render()
+
+    def toggle_layer(self, name: str) -> bool:
+        """Flip one layer; returns whether it is now shown."""
+        self.set_layer(name, not self.visible.get(name, False))
+        return self.visible[name]

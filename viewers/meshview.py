@@ -27,7 +27,7 @@ import numpy as np
 
 from o3drbf.viewers.geometry import look_at, vertex_distances, view_up
 from o3drbf.viewers.inputs import ViewInput
-from o3drbf.viewers.keys import own_keys, press_key
+from o3drbf.viewers.keys import LayerToggles, own_keys, press_key
 
 __all__ = ["MeshViewerApp", "MESH_LAYERS", "COORDINATE_FIELDS", "DISTANCE_FIELD", "color_fields"]
 
@@ -55,7 +55,7 @@ def color_fields(data: ViewInput) -> dict[str, np.ndarray]:
     return out
 
 
-class MeshViewerApp:
+class MeshViewerApp(LayerToggles):
     """A finished mesh as it is, optionally coloured by a field or by its distance to another mesh.
 
     Parameters
@@ -246,22 +246,6 @@ class MeshViewerApp:
         keys = {k: (lambda n=name: self._guard(self.toggle_layer, n)) for k, name, _, _ in MESH_LAYERS}
         keys["k"] = lambda: self._guard(self.save_screenshot)
         return keys
-
-    def set_layer(self, name: str, shown: bool) -> None:
-        """Show or hide one layer (see :data:`MESH_LAYERS`)."""
-        if name not in self.visible:
-            raise ValueError(f"unknown layer {name!r}; valid: {', '.join(self.visible)}")
-        self.visible[name] = bool(shown)
-        button = self.actors.get(f"button_{name}")
-        if button is not None:
-            button.GetRepresentation().SetState(int(bool(shown)))
-        self._apply_visibility()
-        self._render()
-
-    def toggle_layer(self, name: str) -> bool:
-        """Flip one layer; returns whether it is now shown."""
-        self.set_layer(name, not self.visible.get(name, False))
-        return self.visible[name]
 
     def _apply_visibility(self) -> None:
         for col, _ in self.panels():
