@@ -164,6 +164,8 @@ TILE_DEFAULTS = {
     "overlap": 0.25,
     "min_overlap": 0.05,
     "root_pad": 0.1,
+    "partition_sample": 1_000_000,  # points that decide f0, the noise estimate and the k-d cuts (a uniform subsample)
+    "chunk_points": 1_000_000,  # points read and distributed to the tiles at a time
     "delta": 10.0,
     "tau": 0.01,
     "lambda_surface": 1e-3,
