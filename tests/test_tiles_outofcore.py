@@ -104,3 +104,75 @@ def test_tiled_fit_from_a_file_equals_the_fit_from_the_array(tmp_path):
         cloud.normals = o3d.utility.Vector3dVector(np.zeros((0, 3)))
         o3d.io.write_point_cloud(str(tmp_path / "bare.ply"), cloud, write_ascii=False)
         fit_tiled(open_ply_vertices(tmp_path / "bare.ply"), **OPTIONS)
+
+
+def test_too_large_input_without_tiles_is_refused_naming_tiles_auto(tmp_path, monkeypatch, capsys):
+    from o3drbf.cli import main
+    from o3drbf.io.files import write_points
+    from o3drbf.options import UNTILED_MEMORY, check_untiled_fits, untiled_memory
+
+    # The rule by hand: 512 MiB + 2,200 bytes per point, refused above 80 % of what is available.
+    need = 512 * 2**20 + 2200 * 1_000_000
+    assert untiled_memory(1_000_000) == need and UNTILED_MEMORY["usable_fraction"] == 0.8
+    check_untiled_fits(1_000_000, available=int(need / 0.8) + 1)
+    with pytest.raises(ValueError, match=r"1,000,000 points need about 2\.5 GiB .* pass --tiles auto"):
+        check_untiled_fits(1_000_000, available=int(need / 0.8) - 1)
+    check_untiled_fits(None, available=0)  # unknown size: nothing to check
+    # The command line refuses before reading (from the PLY header), in one line, and writes nothing.
+    pts, nrm = SHAPE.sample(4000, seed=2)
+    write_points(tmp_path / "t.ply", pts, nrm)
+    import o3drbf.io.files as files
+    import o3drbf.pointset as pointset
+
+    monkeypatch.setattr("o3drbf.solvers.base.available_memory", lambda: 600 * 2**20)
+    monkeypatch.setattr(pointset, "read_input", lambda *a, **k: pytest.fail("read before the size check"))
+    out = tmp_path / "m.ply"
+    assert main(["reconstruct", str(tmp_path / "t.ply"), "-o", str(out), "-q"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "4,000 points need about 0.5 GiB" in err[0] and "--tiles auto" in err[0]
+    assert not out.exists()
+    # A format without a point count in its header is checked once read.
+    monkeypatch.undo()
+    monkeypatch.setattr("o3drbf.solvers.base.available_memory", lambda: 600 * 2**20)
+    np.savetxt(tmp_path / "t.xyz", pts)
+    assert files.point_count(tmp_path / "t.xyz") is None and files.point_count(tmp_path / "t.ply") == 4000
+    assert main(["reconstruct", str(tmp_path / "t.xyz"), "-o", str(out), "-q"]) == 2
+    assert "--tiles auto" in capsys.readouterr().err
+
+
+def test_tiled_command_reads_a_binary_ply_mapped_and_reports_tiles_and_workers(tmp_path, capsys):
+    import resource
+
+    import open3d as o3d
+
+    from o3drbf.cli import main
+    from o3drbf.io.files import write_points
+    from o3drbf.tiles.run import reconstruct_tiled
+
+    pts, nrm = SHAPE.sample(4000, seed=1)
+    write_points(tmp_path / "t.ply", pts, nrm)
+    assert b"binary" in (tmp_path / "t.ply").read_bytes()[:200]
+    out = tmp_path / "m.ply"
+    args = ["reconstruct", str(tmp_path / "t.ply"), "-o", str(out), "--tiles", "3", "--scheduler", "synchronous",
+            "--resolution", "32"]
+    assert main(args) == 0
+    text = capsys.readouterr().out
+    for field in ("memory-mapped", "tiles            3; constraints per tile min", "blend overlap    25%",
+                  "workers          1:", "peak"):
+        assert field in text, field
+    mesh = o3d.io.read_triangle_mesh(str(out))
+    assert mesh.is_watertight() and mesh.euler_poincare_characteristic() == 0
+    # The stats behind the summary.
+    surf, mesh, stats = reconstruct_tiled(pts, nrm, tiles=3, scheduler="synchronous", resolution=32,
+                                          surface_count_per_tile=300, global_count=200)
+    per_tile = [t["constraints"] for t in surf.metadata["tiles"]]
+    c = stats["constraints"]
+    assert (c["min"], c["median"], c["max"]) == (min(per_tile), float(np.median(per_tile)), max(per_tile))
+    for t in surf.metadata["tiles"]:  # about 300 Poisson-disc surface constraints plus about 10 % exterior ones
+        assert t["constraints"] == t["surface"] + t["exterior"] and 200 < t["surface"] < 400
+        assert 0 < t["exterior"] <= 0.15 * t["surface"]  # exterior_ratio 0.1, Poisson-disc "about"
+    assert stats["overlap"] == 0.25 and stats["min_overlap"] == 0.05 and stats["points"] == 4000
+    (name, w), = stats["workers"].items()  # in-process: one worker, this process
+    assert name.startswith("pid ") and w["tasks"] == 3 * 3  # fit, coarse lattice, meshing per tile
+    assert 0 < w["seconds"] <= stats["fit_seconds"] + stats["extract_seconds"]
+    assert 50 * 2**20 < w["peak_rss"] <= resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024

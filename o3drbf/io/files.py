@@ -36,6 +36,7 @@ __all__ = [
     "PlyVertices",
     "open_ply_vertices",
     "ply_header",
+    "point_count",
     "write_mesh",
     "write_points",
     "check_output",
@@ -591,6 +592,17 @@ def ply_header(path: str | os.PathLike) -> dict:
             elements[-1][2].append(tuple(tok[1:]))
     return {"format": fmt, "header_bytes": nl + 1, "elements": elements}
 
+
+def point_count(path: str | os.PathLike) -> int | None:
+    """Points a PLY file's header announces (without reading them); None for other formats or unreadable headers."""
+    path = Path(path)
+    if path.suffix.lower() != ".ply" or not path.is_file():
+        return None
+    try:
+        h = ply_header(path)
+    except (OSError, ValueError):
+        return None
+    return next((count for name, count, _ in h["elements"] if name == "vertex"), None)
 
 def open_ply_vertices(path: str | os.PathLike) -> PlyVertices:
     """Memory-map the vertex element of a binary PLY file (little- or big-endian).

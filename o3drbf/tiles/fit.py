@@ -169,6 +169,8 @@ def point_source(points, normals=None, seed: int = 0):
     """
     from o3drbf.io.files import PlyVertices
 
+    if isinstance(points, ArrayPoints) and normals is None and points.has_normals:
+        return points
     if isinstance(points, PlyVertices):
         if normals is not None:
             raise ValueError("normals come from the PLY file's nx, ny, nz; pass normals=None with a PlyVertices source")
