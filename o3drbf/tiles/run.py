@@ -44,6 +44,7 @@ def reconstruct_tiled(
     tiles="auto",
     scheduler=None,
     workers: int = 2,
+    memory_limit=None,
     resolution: int | None = 128,
     voxel_size: float | None = None,
     bounds=None,
@@ -62,6 +63,9 @@ def reconstruct_tiled(
     scheduler : None, "synchronous" or a Dask scheduler address
         None: a LocalCluster of ``workers`` processes when there is more than one tile.
     workers : int
+    memory_limit : int or str, optional
+        Per-worker memory limit of a LocalCluster started here (default 80 % of
+        the available memory divided among the workers).
     resolution, voxel_size, bounds
         As in :func:`o3drbf.tiles.extract.extract_tiled`.
     seed, progress
@@ -84,7 +88,7 @@ def reconstruct_tiled(
 
     source = point_source(points, normals, seed=seed)
     count = tile_count(source.count, tiles, fit_options.get("points_per_tile", TILE_DEFAULTS["points_per_tile"]))
-    with tile_client(scheduler, tasks=count, workers=workers) as client:
+    with tile_client(scheduler, tasks=count, workers=workers, memory_limit=memory_limit) as client:
         run_on = "synchronous" if client is None else client
         t0 = time.perf_counter()
         surface = fit_tiled(source, tiles=count, client=run_on, seed=seed, progress=progress, **fit_options)
