@@ -176,12 +176,19 @@ def main(argv=None) -> int:
     mem = ", ".join(f"{p / 2**30:.2f}" for p in peaks) + f" GiB/worker; client {r['peak'] / 2**30:.2f} GiB"
     rows.insert(0, mesh_row(f"o3drbf tiles ({stats['tiles']} tiles, {args.workers} workers x 1 thread, res {resolution})",
                          r["seconds"], mem, r["vertices"], r["triangles"], sdf))
+    logging.info("%s", rows[0])
+    _sec = np.array([i["seconds"] for i in r["tiles"]])
+    _con = np.array([i["constraints"] for i in r["tiles"]])
+    logging.info("fit %.1f s (spread %.1f s, f0 %.1f s), extraction %.1f s (%s exact nodes); per tile fit median %.2f s, %.2f ms/constraint; workers %s",
+                 stats["fit_seconds"], r["spread_seconds"], r["base"]["seconds"], stats["extract_seconds"],
+                 f"{stats['extraction']['evaluated']:,}", np.median(_sec), 1e3 * np.median(_sec / np.maximum(_con, 1)), stats["workers"])
     depths = [] if args.no_poisson else ([10, 11] if args.depth11 else [10])
     for depth in depths:
         logging.info("Open3D Poisson depth %d ...", depth)
         p = in_process(_poisson, path, depth)
         times[depth] = p["seconds"]
         rows.append(mesh_row(f"Open3D Poisson depth {depth}", p["seconds"], f"{p['peak'] / 2**30:.2f} GiB", p["vertices"], p["triangles"], sdf))
+        logging.info("%s (o3drbf / Poisson time %.2f)", rows[-1], r["seconds"] / p["seconds"])
         del p
     if not args.keep:
         path.unlink()
