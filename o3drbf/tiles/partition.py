@@ -309,8 +309,16 @@ def spread_to_tiles(source, normalization, partition: "Partition", chunk: int, f
             open(p, "wb").close()
     for _, pts, nrm in source.chunks(chunk):
         box = normalization.forward(pts)
+        # Sorted along each axis once per chunk: each tile tests only the points of its support's
+        # thinnest slab (fewest points) on one axis.
+        orders = [np.argsort(box[:, k], kind="stable") for k in range(3)]
+        keys = [box[o, k] for k, o in enumerate(orders)]
         for t in range(count):
-            idx = partition.in_support(box, t)
+            c, r = partition.centre[t], partition.rho[t]
+            ranges = [(np.searchsorted(keys[k], c[k] - r[k], "right"), np.searchsorted(keys[k], c[k] + r[k], "left")) for k in range(3)]
+            k = int(np.argmin([b - a for a, b in ranges]))
+            slab = np.sort(orders[k][ranges[k][0]:ranges[k][1]])
+            idx = slab[partition.in_support(box[slab], t)]
             if idx.size == 0:
                 continue
             counts[t] += idx.size
