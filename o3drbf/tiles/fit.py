@@ -2,12 +2,14 @@
 
     f(x) = f0(x) + sum_t W_t(x) g_t(x)
 
-f0 is fitted (in this process) to a Poisson-disc subsample of all the points
-with the normal path's constraints (surface, exterior along normals,
+f0 is fitted (in this process) to a Poisson-disc subsample of the points (of
+a seeded sample of ``partition_sample`` of them when there are more) with the
+normal path's constraints (surface, exterior along normals,
 bounding sphere).  Tile t then fits g_t to the residual ``y - f0`` at
 surface and exterior constraints built, the same way, from the points
-inside its support; tiles are independent tasks (Dask futures, or this
-process).  Kernel and parameters follow the normal path: the multi-order
+inside its support, handed to it by a chunked pass (a per-tile file or
+array: no process needs all the points); tiles are independent tasks (Dask
+futures, or this process).  Kernel and parameters follow the normal path: the multi-order
 basis, with ``auto`` the rule of :mod:`o3drbf.constraints.parameters`
 applied to each fit's own constraint spacing (the tiles' are denser than
 f0's), else the paper's values.
@@ -263,8 +265,8 @@ def fit_tiled(
         For f0 and every tile.
     partition_sample : int
         At most this many points (a seeded uniform subsample, all of them when
-        N is smaller) decide the normalization-independent global steps: the
-        noise estimate, f0's constraints and the k-d cuts.
+        N is smaller) decide the global steps: the noise estimate, f0's
+        constraints and the k-d cuts (the bounding box uses every point).
     chunk_points : int
         Points read and distributed at a time.
     tile_dir : path, optional
