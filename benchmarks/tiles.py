@@ -29,7 +29,6 @@ import argparse
 import logging
 import multiprocessing as mp
 import os
-import resource
 import sys
 import tempfile
 import time
@@ -84,8 +83,14 @@ def scene(n: int, seed: int = 0):
 
 
 def _peak_rss() -> int:
-    """Peak resident set size of this process, bytes (Linux ru_maxrss is in KiB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    """Peak resident set size of this process, bytes.
+
+    VmHWM of /proc/self/status (this process's own memory map); ``ru_maxrss``
+    would also count the parent's memory at fork, kept across the spawn's exec.
+    """
+    from o3drbf.tiles.cluster import peak_rss
+
+    return peak_rss()
 
 
 def _poisson(path, depth, queue):

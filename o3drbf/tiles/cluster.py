@@ -21,7 +21,7 @@ import time
 from o3drbf.progress import progress_bar
 from o3drbf.validation import check_number
 
-__all__ = ["tile_client", "run_tasks", "measured_call", "worker_summary", "SYNCHRONOUS"]
+__all__ = ["tile_client", "run_tasks", "measured_call", "worker_summary", "peak_rss", "SYNCHRONOUS"]
 
 log = logging.getLogger("o3drbf")
 
@@ -77,6 +77,21 @@ def tile_client(client=None, tasks: int = 2, workers: int = 2, memory_limit=None
         c.close()
 
 
+def peak_rss() -> int:
+    """Peak resident memory of this process, bytes: VmHWM of its own memory map on Linux
+    (``ru_maxrss`` there also counts a parent's memory at fork, kept across exec), else ``ru_maxrss``."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    import resource
+
+    return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
+
+
 def measured_call(func, i: int, **kwargs):
     """``func(i, **kwargs)`` and a record of where and how it ran (a task wrapper).
 
@@ -87,11 +102,10 @@ def measured_call(func, i: int, **kwargs):
     record : dict
         ``task``, ``worker`` (the Dask worker's address, else ``"pid N"``),
         ``seconds``, ``peak_rss`` (the worker process's peak resident memory so
-        far, bytes) and ``rss`` (resident memory after the task), measured in
+        far, bytes, :func:`peak_rss`) and ``rss`` (resident memory after the task), measured in
         the process that ran the task.
     """
     import os
-    import resource
 
     import psutil
 
@@ -105,7 +119,7 @@ def measured_call(func, i: int, **kwargs):
     except (ImportError, ValueError):
         worker = f"pid {os.getpid()}"
     rec = {"task": int(i), "worker": worker, "seconds": seconds,
-           "peak_rss": int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024,
+           "peak_rss": peak_rss(),
            "rss": int(psutil.Process().memory_info().rss)}
     return out, rec
 
