@@ -136,6 +136,11 @@ def test_too_large_input_without_tiles_is_refused_naming_tiles_auto(tmp_path, mo
     monkeypatch.setattr("o3drbf.solvers.base.available_memory", lambda: 600 * 2**20)
     np.savetxt(tmp_path / "t.xyz", pts)
     assert files.point_count(tmp_path / "t.xyz") is None and files.point_count(tmp_path / "t.ply") == 4000
+    data = (tmp_path / "t.ply").read_bytes()
+    (tmp_path / "cut.ply").write_bytes(data.replace(b"element vertex 4000", b"element vertex 900000000"))
+    assert files.point_count(tmp_path / "cut.ply") is None  # a corrupt count is the reader's to report
+    assert main(["reconstruct", str(tmp_path / "cut.ply"), "-o", str(out), "-q"]) == 2
+    assert "truncated" in capsys.readouterr().err
     assert main(["reconstruct", str(tmp_path / "t.xyz"), "-o", str(out), "-q"]) == 2
     assert "--tiles auto" in capsys.readouterr().err
 

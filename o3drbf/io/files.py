@@ -594,11 +594,13 @@ def ply_header(path: str | os.PathLike) -> dict:
 
 
 def point_count(path: str | os.PathLike) -> int | None:
-    """Points a PLY file's header announces (without reading them); None for other formats or unreadable headers."""
+    """Points a PLY file's header announces (without reading them); None for other formats, unreadable
+    headers or a file shorter than its header announces (the reader then names the problem)."""
     path = Path(path)
     if path.suffix.lower() != ".ply" or not path.is_file():
         return None
     try:
+        _check_ply_header(path)
         h = ply_header(path)
     except (OSError, ValueError):
         return None
