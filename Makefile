@@ -5,7 +5,7 @@ OUT     ?= out
 TEMPLE  ?= ../shared/data/middlebury_templeSparseRing
 export OMP_NUM_THREADS ?= 2
 
-.PHONY: setup demo test samples bench bench-paper figures clean
+.PHONY: setup demo test samples bench bench-tiles bench-tiles-large bench-paper figures clean
 
 setup: $(SETUP)
 
@@ -23,6 +23,14 @@ test: $(SETUP)
 
 bench: $(SETUP)
 	$(PY) benchmarks/run.py
+
+# Tiled reconstruction from a file vs Open3D Poisson (1M points, about 10 minutes on 2 shared cores).
+bench-tiles: $(SETUP)
+	$(PY) benchmarks/tiles.py
+
+# Opt-in, not part of `make bench`: 10,000,000 points, 2 workers x 8 GiB, Poisson depth 10 and 11 (about an hour on 2 cores).
+bench-tiles-large: $(SETUP)
+	$(PY) benchmarks/tiles.py --large --depth11
 
 bench-paper: $(SETUP)
 	$(PY) benchmarks/paper/run_all.py --out results/paper

@@ -1,17 +1,26 @@
-"""Benchmark: tiled reconstruction on Dask (o3drbf.tiles) vs Open3D Poisson depth 10.
+"""Benchmark: tiled reconstruction on Dask (o3drbf.tiles) from a file vs Open3D Poisson depth 10 (and 11).
 
-A generated scene, sampled with true normals: one long torus (major radius 8,
-tube 0.6) for the default 1M points; ``--large`` samples 10M points on a 3 x 3
-grid of such tori (not run by default).  o3drbf fits ``fit_tiled`` on a
-LocalCluster (``--workers`` processes x 1 thread) and meshes with
-``extract_tiled`` on the same cluster; Open3D screened Poisson (depth 10) runs
-on the same points and normals in a separate process (so its peak memory is
-its own).  Prints a markdown table: wall time, peak resident memory (per
-worker for o3drbf, of the process for Poisson), mesh size, watertightness,
-components, and the distance of the mesh vertices to the analytic surface,
-then the per-tile records (time per tile, per constraint).
+A generated scene, sampled uniformly by area with true normals and a little
+noise: a long torus (major radius 8, tube 0.6) that crosses many tiles, two
+spheres, a cube and a small torus.  The points are written once to a binary
+PLY; both methods start from that file in their own process (so each peak
+memory is its own):
 
-    .venv/bin/python benchmarks/tiles.py [--points 1000000] [--large] [--workers 2] [--resolution 256]
+- o3drbf (first): ``reconstruct_tiled`` on the memory-mapped file (chunked passes,
+  per-tile point files; the client never holds all the points), a
+  LocalCluster of ``--workers`` processes x 1 thread with ``--memory-limit``
+  per worker, the fit and the tiled marching cubes on the same cluster;
+- Open3D screened Poisson, depth 10 (``--depth11`` adds depth 11), reading
+  the same file.
+
+Prints a markdown table (wall time from the file to the mesh, peak resident
+memory: per worker and of the client for o3drbf, of the process for Poisson;
+mesh size, closed-manifold, components, distance of the vertices to the
+analytic surface), the ratio of times, and the per-tile records (time per
+tile, per constraint).
+
+    .venv/bin/python benchmarks/tiles.py [--points 1000000] [--workers 2] [--resolution auto] [--depth11]
+    .venv/bin/python benchmarks/tiles.py --large      # 10,000,000 points (opt-in: make bench-tiles-large)
 """
 
 from __future__ import annotations
@@ -19,124 +28,199 @@ from __future__ import annotations
 import argparse
 import logging
 import multiprocessing as mp
-import resource
+import os
 import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
-from o3drbf.synthetic.shapes import Torus
+from o3drbf.synthetic.shapes import Cube, Sphere, Torus
+
+NOISE = 0.003  # data units (the long torus's tube radius is 0.6)
 
 
-def scene(n: int, large: bool, seed: int = 0):
-    """(points, normals, signed_distance) of the benchmark scene."""
-    k = 3 if large else 1
-    tori = [Torus(8.0, 0.6, center=(20.0 * i, 20.0 * j, 0.0)) for i in range(k) for j in range(k)]
-    per = [n // len(tori) + (1 if i < n % len(tori) else 0) for i in range(len(tori))]
-    parts = [t.sample(m, seed=seed + i) for i, (t, m) in enumerate(zip(tori, per))]
+class Moved:
+    """A shape translated by ``offset`` (sample and signed distance)."""
+
+    def __init__(self, shape, offset):
+        self.shape, self.offset = shape, np.asarray(offset, float)
+
+    def sample(self, n, noise=0.0, seed=0):
+        p, q = self.shape.sample(n, noise=noise, seed=seed)
+        return p + self.offset, q
+
+    def signed_distance(self, x):
+        return self.shape.signed_distance(np.asarray(x, float) - self.offset)
+
+
+def scene_shapes():
+    """(shape, area) of the scene's objects."""
+    return [
+        (Torus(8.0, 0.6), 4 * np.pi**2 * 8.0 * 0.6),  # long: crosses many tiles
+        (Sphere(2.0, (0.0, 0.0, 0.0)), 4 * np.pi * 2.0**2),  # in the torus's hole
+        (Sphere(1.5, (12.0, 3.0, 0.5)), 4 * np.pi * 1.5**2),
+        (Moved(Cube(1.2), (-12.0, -2.0, 0.0)), 6 * 2.4**2),
+        (Moved(Torus(1.5, 0.5), (3.0, -12.0, 0.0)), 4 * np.pi**2 * 1.5 * 0.5),
+    ]
+
+
+def scene(n: int, seed: int = 0):
+    """(points, normals, signed_distance) of the benchmark scene: ``n`` points spread by area."""
+    shapes = scene_shapes()
+    areas = np.array([a for _, a in shapes])
+    per = np.floor(n * areas / areas.sum()).astype(int)
+    per[0] += n - per.sum()
+    parts = [s.sample(int(m), noise=NOISE, seed=seed + i) for i, ((s, _), m) in enumerate(zip(shapes, per))]
     pts = np.concatenate([p for p, _ in parts])
     nrm = np.concatenate([q for _, q in parts])
 
     def sdf(x):
-        return np.min([t.signed_distance(x) for t in tori], axis=0)
+        return np.min([s.signed_distance(x) for s, _ in shapes], axis=0)
 
     return pts, nrm, sdf
 
 
 def _peak_rss() -> int:
-    """Peak resident set size of this process, bytes (Linux ru_maxrss is in KiB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    """Peak resident set size of this process, bytes.
+
+    VmHWM of /proc/self/status (this process's own memory map); ``ru_maxrss``
+    would also count the parent's memory at fork, kept across the spawn's exec.
+    """
+    from o3drbf.tiles.cluster import peak_rss
+
+    return peak_rss()
 
 
-def _poisson(pts, nrm, depth, queue):
+def _poisson(path, depth, queue):
     import open3d as o3d
 
     t0 = time.perf_counter()
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-    pcd.normals = o3d.utility.Vector3dVector(nrm)
+    pcd = o3d.io.read_point_cloud(str(path))
     mesh, _ = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pcd, depth=depth)
     seconds = time.perf_counter() - t0
-    queue.put((seconds, _peak_rss(), np.asarray(mesh.vertices), np.asarray(mesh.triangles)))
+    queue.put({"seconds": seconds, "peak": _peak_rss(), "vertices": np.asarray(mesh.vertices), "triangles": np.asarray(mesh.triangles)})
 
 
-def run_poisson(pts, nrm, depth=10):
+def _tiled(path, workers, memory_limit, resolution, tiles, queue):
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    logging.getLogger("distributed").setLevel(logging.WARNING)
+    from o3drbf.io.files import open_ply_vertices
+    from o3drbf.tiles.run import reconstruct_tiled
+
+    t0 = time.perf_counter()
+    surf, mesh, stats = reconstruct_tiled(open_ply_vertices(path), tiles=tiles, workers=workers, memory_limit=memory_limit,
+                                          resolution=resolution)
+    seconds = time.perf_counter() - t0
+    meta = surf.metadata
+    queue.put({"seconds": seconds, "peak": _peak_rss(), "vertices": np.asarray(mesh.vertices), "triangles": np.asarray(mesh.triangles),
+               "stats": stats, "tiles": meta["tiles"], "base": meta["base"], "spread_seconds": meta["spread_seconds"],
+               "tiles_seconds": meta["tiles_seconds"]})
+
+
+def in_process(target, *args):
+    """Run ``target(*args, queue)`` in a fresh (spawned) process and return what it put on the queue."""
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
-    p = ctx.Process(target=_poisson, args=(pts, nrm, depth, q))
+    p = ctx.Process(target=target, args=(*args, q))
     p.start()
     out = q.get()
     p.join()
     return out
 
 
-def closed_manifold(mesh) -> bool:
-    """Edge-manifold without boundary and vertex-manifold (Open3D's is_watertight
-    adds a self-intersection test, far too slow for Poisson's millions of triangles)."""
-    return bool(mesh.is_edge_manifold(allow_boundary_edges=False) and mesh.is_vertex_manifold())
+def mesh_facts(verts, tris):
+    import open3d as o3d
+
+    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(verts), o3d.utility.Vector3iVector(tris))
+    closed = bool(m.is_edge_manifold(allow_boundary_edges=False) and m.is_vertex_manifold())
+    return closed, len(m.cluster_connected_triangles()[1])
 
 
-def mesh_row(name, seconds, memory, verts, tris, sdf, watertight, components):
+def mesh_row(name, seconds, memory, verts, tris, sdf):
+    """A table row. 'closed manifold' is edge-manifold without boundary and vertex-manifold (Open3D's
+    is_watertight adds a self-intersection test, far too slow for Poisson's millions of triangles)."""
+    closed, components = mesh_facts(verts, tris)
     d = np.abs(sdf(verts))
-    return (f"| {name} | {seconds:.1f} | {memory} | {len(verts):,} | {len(tris):,} | {watertight} | {components} | "
+    return (f"| {name} | {seconds:.1f} | {memory} | {len(verts):,} | {len(tris):,} | {closed} | {components} | "
             f"{d.mean():.4f} | {np.percentile(d, 99):.4f} |")
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--points", type=int, default=None, help="points (default 1M, or 10M with --large)")
-    ap.add_argument("--large", action="store_true", help="10M points on a 3 x 3 grid of tori")
+    ap.add_argument("--large", action="store_true", help="10,000,000 points")
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--resolution", type=int, default=256)
+    ap.add_argument("--memory-limit", default="8GiB", help="per worker (default %(default)s)")
+    ap.add_argument("--resolution", default="auto", help="lattice cells on the longest side; auto: 256 up to 2M points, else 512")
     ap.add_argument("--tiles", default="auto")
     ap.add_argument("--no-poisson", action="store_true")
+    ap.add_argument("--depth11", action="store_true", help="also Open3D Poisson depth 11")
+    ap.add_argument("--keep", metavar="DIR", help="write the scene's PLY here and keep it (default: a temporary folder)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    logging.getLogger("distributed").setLevel(logging.WARNING)
-    import open3d as o3d
-    from distributed import Client, LocalCluster
-
-    from o3drbf.tiles.extract import extract_tiled
-    from o3drbf.tiles.fit import fit_tiled
+    from o3drbf.io.files import write_points
 
     n = args.points or (10_000_000 if args.large else 1_000_000)
-    pts, nrm, sdf = scene(n, args.large)
+    resolution = (256 if n <= 2_000_000 else 512) if args.resolution == "auto" else int(args.resolution)
     tiles = args.tiles if args.tiles == "auto" else int(args.tiles)
-    rows = []
-    if not args.no_poisson:
-        sec, rss, v, t = run_poisson(pts, nrm, 10)
-        m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(t))
-        rows.append(mesh_row("Open3D Poisson depth 10", sec, f"{rss / 2**30:.2f} GiB", v, t, sdf, closed_manifold(m),
-                             len(m.cluster_connected_triangles()[1])))
-    cluster = LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True, dashboard_address=":0")
-    client = Client(cluster)
-    logging.info("dashboard %s", client.dashboard_link)
+    folder = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="o3drbf-bench-"))
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"scene-{n}.ply"
+    pts, nrm, sdf = scene(n)
     t0 = time.perf_counter()
-    surf = fit_tiled(pts, nrm, tiles=tiles, client=client, progress=False)
-    t_fit = time.perf_counter() - t0
-    stats = {}
-    t1 = time.perf_counter()
-    mesh = extract_tiled(surf, resolution=args.resolution, client=client, stats=stats)
-    t_ext = time.perf_counter() - t1
-    peaks = client.run(_peak_rss)
-    client.close()
-    cluster.close()
-    v, t = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
-    mem = ", ".join(f"{p / 2**30:.2f}" for p in peaks.values()) + " GiB/worker"
-    rows.append(mesh_row(f"o3drbf tiles ({surf.metadata['tile_count']} tiles, {args.workers} workers, res {args.resolution})",
-                         t_fit + t_ext, mem, v, t, sdf, closed_manifold(mesh), len(mesh.cluster_connected_triangles()[1])))
-    print(f"\n{n:,} points; load average {open('/proc/loadavg').read().split()[:3]}\n")
-    print("| method | seconds | peak memory | vertices | triangles | closed manifold | components | mean abs SDF | p99 abs SDF |")
+    write_points(path, pts, nrm)
+    logging.info("scene: %s points written to %s (%.0f MB) in %.1f s", f"{n:,}", path, path.stat().st_size / 1e6, time.perf_counter() - t0)
+    del pts, nrm
+    rows, times = [], {}
+    logging.info("o3drbf tiled ...")
+    r = in_process(_tiled, path, args.workers, args.memory_limit, resolution, tiles)
+    stats = r["stats"]
+    peaks = [w["peak_rss"] for w in stats["workers"].values()]
+    mem = ", ".join(f"{p / 2**30:.2f}" for p in peaks) + f" GiB/worker; client {r['peak'] / 2**30:.2f} GiB"
+    rows.insert(0, mesh_row(f"o3drbf tiles ({stats['tiles']} tiles, {args.workers} workers x 1 thread, res {resolution})",
+                         r["seconds"], mem, r["vertices"], r["triangles"], sdf))
+    logging.info("%s", rows[0])
+    _sec = np.array([i["seconds"] for i in r["tiles"]])
+    _con = np.array([i["constraints"] for i in r["tiles"]])
+    logging.info("fit %.1f s (spread %.1f s, f0 %.1f s), extraction %.1f s (%s exact nodes); per tile fit median %.2f s, %.2f ms/constraint; workers %s",
+                 stats["fit_seconds"], r["spread_seconds"], r["base"]["seconds"], stats["extract_seconds"],
+                 f"{stats['extraction']['evaluated']:,}", np.median(_sec), 1e3 * np.median(_sec / np.maximum(_con, 1)), stats["workers"])
+    depths = [] if args.no_poisson else ([10, 11] if args.depth11 else [10])
+    for depth in depths:
+        logging.info("Open3D Poisson depth %d ...", depth)
+        p = in_process(_poisson, path, depth)
+        times[depth] = p["seconds"]
+        rows.append(mesh_row(f"Open3D Poisson depth {depth}", p["seconds"], f"{p['peak'] / 2**30:.2f} GiB", p["vertices"], p["triangles"], sdf))
+        logging.info("%s (o3drbf / Poisson time %.2f)", rows[-1], r["seconds"] / p["seconds"])
+        del p
+    if not args.keep:
+        path.unlink()
+        os.rmdir(folder)
+    load = open("/proc/loadavg").read().split()[:3]
+    print(f"\n{n:,} points (scene: long torus, 2 spheres, cube, small torus; noise {NOISE}); "
+          f"load average after the run {' '.join(load)}; {os.cpu_count()} cores\n")
+    print("| method | seconds (file -> mesh) | peak memory | vertices | triangles | closed manifold | components | mean abs SDF | p99 abs SDF |")
     print("|---|---|---|---|---|---|---|---|---|")
     print("\n".join(rows))
-    infos = surf.metadata["tiles"]
+    for depth, sec in times.items():
+        print(f"\no3drbf / Poisson depth {depth} time: {r['seconds'] / sec:.2f}")
+    infos = r["tiles"]
     sec = np.array([i["seconds"] for i in infos])
     con = np.array([i["constraints"] for i in infos])
-    print(f"\nfit {t_fit:.1f} s (global f0 {surf.metadata['base']['seconds']:.1f} s on {surf.metadata['base']['constraints']} "
-          f"constraints; tiles {surf.metadata['tiles_seconds']:.1f} s wall), extraction {t_ext:.1f} s "
-          f"(coarse {stats['coarse_seconds']:.1f} s, fine {stats['fine_seconds']:.1f} s, {stats['evaluated']:,} exact nodes, lattice {stats['lattice']})")
-    print(f"per tile fit: median {np.median(sec):.2f} s, max {sec.max():.2f} s, {np.median(con):.0f} constraints "
+    ext = stats["extraction"]
+    c = stats["constraints"]
+    print(f"\nfit {stats['fit_seconds']:.1f} s (chunked spread to tile files {r['spread_seconds']:.1f} s; global f0 "
+          f"{r['base']['seconds']:.1f} s on {r['base']['constraints']} constraints; tiles {r['tiles_seconds']:.1f} s wall), "
+          f"extraction {stats['extract_seconds']:.1f} s (coarse {ext['coarse_seconds']:.1f} s, fine {ext['fine_seconds']:.1f} s, "
+          f"{ext['evaluated']:,} exact nodes, lattice {ext['lattice']})")
+    print(f"constraints per tile: min {c['min']:,}, median {c['median']:,.0f}, max {c['max']:,}; blend overlap {stats['overlap']:.0%}")
+    print(f"per tile fit: median {np.median(sec):.2f} s, max {sec.max():.2f} s "
           f"({1e3 * np.median(sec / np.maximum(con, 1)):.2f} ms per constraint); per tile extraction "
-          f"{stats['fine_seconds'] * args.workers / len(infos):.2f} s worker time")
+          f"{ext['fine_seconds'] * args.workers / len(infos):.2f} s worker time")
+    for name, w in stats["workers"].items():
+        print(f"worker {name}: {w['tasks']} tasks, {w['seconds']:.1f} s task time, peak {w['peak_rss'] / 2**30:.2f} GiB")
     return 0
 
 

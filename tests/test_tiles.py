@@ -184,6 +184,12 @@ def test_long_torus_is_one_closed_genus_one_piece(long_cluster):
     assert len(counts) == 1
     assert len(np.unique(np.sort(f, axis=1), axis=0)) == len(f)  # no double faces
     assert stats["vertices_before_weld"] > stats["vertices"] and stats["weld_mismatch"] == 0.0
+    # Time and peak memory measured on each of the two worker processes, for the fit and the meshing.
+    for record in (surf.metadata["workers"], stats["workers"]):
+        assert len(record) == 2 and all(name.startswith("tcp://") for name in record)
+    assert sum(w["tasks"] for w in surf.metadata["workers"].values()) == 6
+    assert sum(w["tasks"] for w in stats["workers"].values()) == 12  # coarse and fine pass per tile
+    assert all(50 * 2**20 < w["peak_rss"] < 2 * 2**30 for w in stats["workers"].values())  # memory_limit 2 GiB
     # Outward faces (positive volume) and close to the true torus.
     verts = np.asarray(mesh.vertices)
     vol = np.einsum("ij,ij->i", verts[f[:, 0]], np.cross(verts[f[:, 1]], verts[f[:, 2]])).sum() / 6

@@ -22,7 +22,7 @@ from pathlib import Path
 from o3drbf.io.files import MESH_FORMATS
 from o3drbf.options import DEFAULTS, whole_number
 
-__all__ = ["main", "build_parser", "check_reconstruct_files"]
+__all__ = ["main", "build_parser", "check_reconstruct_files", "tiled_summary"]
 
 log = logging.getLogger("o3drbf")
 
@@ -231,7 +231,18 @@ def _reconstruct(args) -> int:
     t0 = time.perf_counter()
     options = options_from_args(args).validate()
     out = check_reconstruct_files(args)
+    if args.tiles is not None and args.cameras is None:
+        vertices = _mapped_input(args.input)
+        if vertices is not None:  # a binary PLY with normals: never read whole
+            check_reconstruct_files(args, vertices.take(0, min(len(vertices), 100_000))[0])
+            return _reconstruct_tiled(args, vertices, options, out, t0)
+    if args.tiles is None:
+        from o3drbf.options import check_untiled_fits
+
+        check_untiled_fits(io.point_count(args.input))  # from the file header, before reading
     data = read_input(args.input, cameras=args.cameras)
+    if args.tiles is None:
+        check_untiled_fits(len(data.points))
     check_reconstruct_files(args, data.points)
     if args.no_color:
         data = replace(data, colors=None)
@@ -253,6 +264,19 @@ def _reconstruct(args) -> int:
     return 0
 
 
+def _mapped_input(path):
+    """The memory-mapped vertices of a binary PLY with normals, else None (read it into memory)."""
+    if not str(path).lower().endswith(".ply"):
+        return None
+    from o3drbf.io.files import open_ply_vertices
+
+    try:
+        vertices = open_ply_vertices(path)
+    except (ValueError, FileNotFoundError):
+        return None  # ascii, lists, no vertices...: read_input reads it or names the problem
+    return vertices if vertices.has_normals else None
+
+
 def _tiles_value(text: str):
     from o3drbf.tiles.run import tiles_argument
 
@@ -264,16 +288,19 @@ def _reconstruct_tiled(args, data, options, out, t0) -> int:
     from o3drbf.io import files as io
     from o3drbf.tiles.run import reconstruct_tiled
 
+    from o3drbf.io.files import PlyVertices
+
     p = options.parameters
-    if data.cameras is not None or p.kernel != "multiorder":
+    mapped = isinstance(data, PlyVertices)
+    if (not mapped and data.cameras is not None) or p.kernel != "multiorder":
         raise ValueError("--tiles needs points with normals and the multiorder kernel; drop --cameras/--kernel")
     if options.confidence.wanted:
         raise ValueError("--confidence and --trim are not available with --tiles; drop them or --tiles")
-    if data.normals is None:
+    if not mapped and data.normals is None:
         log.warning("%s has no normals: estimating and orienting them with Open3D", args.input)
     c = options.constraints
     surface, mesh, stats = reconstruct_tiled(
-        data.points, data.normals, tiles=args.tiles, scheduler=args.scheduler, workers=args.workers,
+        data if mapped else data.points, None if mapped else data.normals, tiles=args.tiles, scheduler=args.scheduler, workers=args.workers,
         resolution=128 if options.extract.resolution == "auto" else options.extract.resolution, voxel_size=options.extract.voxel_size, seed=args.seed, progress=not args.quiet,
         auto=p.auto, delta=p.delta, tau=p.tau, lambda_surface=p.lambda_surface, lambda_exterior=p.lambda_exterior,
         exterior_ratio=c.exterior_ratio, exterior_offset=c.exterior_offset, sphere_count=c.sphere_count, solver=options.fit.solver,
@@ -282,11 +309,25 @@ def _reconstruct_tiled(args, data, options, out, t0) -> int:
     if args.save_model:
         surface.save(args.save_model)
     if not args.quiet:
-        print(f"o3drbf reconstruct --tiles: {args.input} -> {out}\n"
-              f"  tiles            {stats['tiles']}\n"
-              f"  mesh             {stats['triangles']:,} triangles\n"
-              f"  time             fit {stats['fit_seconds']:.1f} s, mesh {stats['extract_seconds']:.1f} s, total {time.perf_counter() - t0:.1f} s")
+        print(tiled_summary(stats, args.input, out, time.perf_counter() - t0, mapped))
     return 0
+
+
+def tiled_summary(stats: dict, input_path, output_path, seconds: float, mapped: bool = False) -> str:
+    """The closing summary of ``reconstruct --tiles`` (``stats`` from :func:`o3drbf.tiles.run.reconstruct_tiled`)."""
+    c = stats["constraints"]
+    workers = stats["workers"]
+    lines = [
+        f"o3drbf reconstruct --tiles: {input_path} -> {output_path}",
+        f"  points           {stats['points']:,}" + (" (memory-mapped, spread to per-tile files)" if mapped else ""),
+        f"  tiles            {stats['tiles']}; constraints per tile min {c['min']:,}, median {c['median']:,.0f}, max {c['max']:,}",
+        f"  blend overlap    {stats['overlap']:.0%} of each cell's half-size on every side (at least {stats['min_overlap']:g} box units)",
+        f"  mesh             {stats['triangles']:,} triangles, {stats['vertices']:,} vertices",
+        f"  time             fit {stats['fit_seconds']:.1f} s, mesh {stats['extract_seconds']:.1f} s, total {seconds:.1f} s",
+        f"  workers          {len(workers)}: " + "; ".join(
+            f"{name} {w['tasks']} tasks, {w['seconds']:.1f} s, peak {w['peak_rss'] / 2**30:.2f} GiB" for name, w in workers.items()),
+    ]
+    return "\n".join(lines)
 
 
 def _parameters_line(report) -> str:

@@ -21,7 +21,7 @@ import time
 from o3drbf.progress import progress_bar
 from o3drbf.validation import check_number
 
-__all__ = ["tile_client", "run_tasks", "SYNCHRONOUS"]
+__all__ = ["tile_client", "run_tasks", "measured_call", "worker_summary", "peak_rss", "SYNCHRONOUS"]
 
 log = logging.getLogger("o3drbf")
 
@@ -77,32 +77,104 @@ def tile_client(client=None, tasks: int = 2, workers: int = 2, memory_limit=None
         c.close()
 
 
-def run_tasks(client, func, count: int, shared: dict, progress: bool = False, desc: str = "tiles") -> list:
-    """``[func(i, **shared) for i in range(count)]``, on ``client`` or in-process.
+def peak_rss() -> int:
+    """Peak resident memory of this process, bytes: VmHWM of its own memory map on Linux
+    (``ru_maxrss`` there also counts a parent's memory at fork, kept across exec), else ``ru_maxrss``."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    import resource
 
-    ``shared`` (the large arrays) is scattered once to every worker; one
-    future per task; results come back in task order whatever order they
-    finish in.  Logs each task's completion and shows one bar tick per task.
+    return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
+
+
+def measured_call(func, i: int, **kwargs):
+    """``func(i, **kwargs)`` and a record of where and how it ran (a task wrapper).
+
+    Returns
+    -------
+    result
+        What ``func`` returned.
+    record : dict
+        ``task``, ``worker`` (the Dask worker's address, else ``"pid N"``),
+        ``seconds``, ``peak_rss`` (the worker process's peak resident memory so
+        far, bytes, :func:`peak_rss`) and ``rss`` (resident memory after the task), measured in
+        the process that ran the task.
+    """
+    import os
+
+    import psutil
+
+    t0 = time.perf_counter()
+    out = func(i, **kwargs)
+    seconds = time.perf_counter() - t0
+    try:
+        from distributed import get_worker
+
+        worker = get_worker().address
+    except (ImportError, ValueError):
+        worker = f"pid {os.getpid()}"
+    rec = {"task": int(i), "worker": worker, "seconds": seconds,
+           "peak_rss": peak_rss(),
+           "rss": int(psutil.Process().memory_info().rss)}
+    return out, rec
+
+
+def worker_summary(records: list) -> dict:
+    """Per worker: ``tasks``, ``seconds`` (summed task time) and ``peak_rss`` (bytes, the largest seen), from :func:`measured_call` records."""
+    out: dict = {}
+    for r in records:
+        w = out.setdefault(r["worker"], {"tasks": 0, "seconds": 0.0, "peak_rss": 0})
+        w["tasks"] += 1
+        w["seconds"] += float(r["seconds"])
+        w["peak_rss"] = max(w["peak_rss"], int(r["peak_rss"]), int(r["rss"]))
+    return dict(sorted(out.items()))
+
+
+def run_tasks(client, func, count: int, shared: dict, progress: bool = False, desc: str = "tiles",
+              per_task: list | None = None, records: list | None = None) -> list:
+    """``[func(i, **shared, **per_task[i]) for i in range(count)]``, on ``client`` or in-process.
+
+    ``shared`` (arrays every task needs) is scattered once to every worker;
+    ``per_task[i]`` (e.g. tile i's own points, or the path of its file) goes
+    to task i only.  One future per task; results come back in task order
+    whatever order they finish in.  Every task runs through
+    :func:`measured_call`: its record is appended to ``records`` when given.
+    Logs each task's completion and shows one bar tick per task.
     """
     bar = progress_bar(progress, total=count, desc=desc, unit="tile")
     t0 = time.perf_counter()
     results = [None] * count
+    own = [{} for _ in range(count)] if per_task is None else per_task
+    if len(own) != count:
+        raise ValueError(f"run_tasks: {len(own)} per-task argument sets for {count} tasks (a bug)")
+    done = [None] * count
     try:
         if client is None:
             for i in range(count):
-                results[i] = func(i, **shared)
+                results[i], done[i] = measured_call(func, i, **shared, **own[i])
                 _done(bar, desc, i, count, t0)
-            return results
-        from distributed import as_completed
+        else:
+            from distributed import as_completed
 
-        # hash=False: a fresh key per call (a re-scattered equal object could hit a key being released).
-        remote = {k: client.scatter(v, broadcast=True, hash=False) for k, v in shared.items()}
-        futures = [client.submit(func, i, pure=False, key=f"{desc}-{i}-{id(remote)}", **remote) for i in range(count)]
-        index = {f.key: i for i, f in enumerate(futures)}
-        for fut in as_completed(futures):
-            i = index[fut.key]
-            results[i] = fut.result()
-            _done(bar, desc, i, count, t0)
+            # hash=False: a fresh key per call (a re-scattered equal object could hit a key being released).
+            remote = {k: client.scatter(v, broadcast=True, hash=False) for k, v in shared.items()}
+            futures = []
+            for i in range(count):
+                mine = {k: (v if isinstance(v, (str, int, float, type(None))) else client.scatter([v], hash=False)[0])
+                        for k, v in own[i].items()}
+                futures.append(client.submit(measured_call, func, i, pure=False, key=f"{desc}-{i}-{id(remote)}", **remote, **mine))
+            index = {f.key: i for i, f in enumerate(futures)}
+            for fut in as_completed(futures):
+                i = index[fut.key]
+                results[i], done[i] = fut.result()
+                _done(bar, desc, i, count, t0)
+        if records is not None:
+            records.extend(done)
         return results
     finally:
         if bar is not None:

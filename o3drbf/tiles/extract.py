@@ -27,7 +27,7 @@ import time
 import numpy as np
 
 from o3drbf.extract import extraction_box, grid_for
-from o3drbf.tiles.cluster import run_tasks, tile_client
+from o3drbf.tiles.cluster import run_tasks, tile_client, worker_summary
 from o3drbf.validation import check_number
 
 __all__ = ["extract_tiled", "lattice_for"]
@@ -225,7 +225,9 @@ def extract_tiled(
     progress : bool
         One bar tick per tile and pass.
     stats : dict, optional
-        Filled with counts and timings (``evaluated``, ``coarse_nodes``, seconds).
+        Filled with counts and timings (``evaluated``, ``coarse_nodes``, seconds) and
+        ``workers``: per worker, tasks, summed task seconds and peak memory
+        (:func:`o3drbf.tiles.cluster.worker_summary`).
 
     Returns
     -------
@@ -245,8 +247,10 @@ def extract_tiled(
     count = len(surface.partition)
     nc = np.array(lat["coarse"])
     t0 = time.perf_counter()
+    records: list = []
     with tile_client(client, tasks=count, workers=workers) as c:
-        parts = run_tasks(c, coarse_task, count, {"surface": surface, "lattice": lat, "level": level}, progress=progress, desc="coarse lattice")
+        parts = run_tasks(c, coarse_task, count, {"surface": surface, "lattice": lat, "level": level}, progress=progress,
+                          desc="coarse lattice", records=records)
         cv = np.full(tuple(nc + 1), np.nan)
         for p in parts:
             if p is not None:
@@ -271,7 +275,8 @@ def extract_tiled(
         eps = CORNER_GAP * float(np.median(steps)) / lat["stride"]
         t1 = time.perf_counter()
         pieces = run_tasks(c, fine_task, count, {"surface": surface, "lattice": lat, "coarse_values": cv, "band": band,
-                                                 "eps": eps, "level": level, "closed": closed}, progress=progress, desc="meshing tiles")
+                                                 "eps": eps, "level": level, "closed": closed}, progress=progress, desc="meshing tiles",
+                           records=records)
         t_fine = time.perf_counter() - t1
     evaluated = int(sum(p["evaluated"] for p in pieces if p is not None))
     pieces = [p for p in pieces if p is not None and "ids" in p]
@@ -298,7 +303,7 @@ def extract_tiled(
             lattice=lat["shape"], stride=lat["stride"], coarse_nodes=int(cv.size), band_cells=int(band.sum()),
             evaluated=evaluated, vertices_before_weld=int(len(ids)),
             vertices=int(len(uniq)), weld_mismatch=mismatch, coarse_seconds=t_coarse, fine_seconds=t_fine,
-            seconds=time.perf_counter() - t0,
+            seconds=time.perf_counter() - t0, workers=worker_summary(records),
         )
     log.info("tiled extraction: lattice %s, %d vertices (%d before welding), %d triangles in %.1f s",
              lat["shape"], len(uniq), len(ids), len(faces), time.perf_counter() - t0)

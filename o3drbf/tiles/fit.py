@@ -2,12 +2,14 @@
 
     f(x) = f0(x) + sum_t W_t(x) g_t(x)
 
-f0 is fitted (in this process) to a Poisson-disc subsample of all the points
-with the normal path's constraints (surface, exterior along normals,
+f0 is fitted (in this process) to a Poisson-disc subsample of the points (of
+a seeded sample of ``partition_sample`` of them when there are more) with the
+normal path's constraints (surface, exterior along normals,
 bounding sphere).  Tile t then fits g_t to the residual ``y - f0`` at
 surface and exterior constraints built, the same way, from the points
-inside its support; tiles are independent tasks (Dask futures, or this
-process).  Kernel and parameters follow the normal path: the multi-order
+inside its support, handed to it by a chunked pass (a per-tile file or
+array: no process needs all the points); tiles are independent tasks (Dask
+futures, or this process).  Kernel and parameters follow the normal path: the multi-order
 basis, with ``auto`` the rule of :mod:`o3drbf.constraints.parameters`
 applied to each fit's own constraint spacing (the tiles' are denser than
 f0's), else the paper's values.
@@ -36,12 +38,20 @@ from o3drbf.prep.sampling import mean_spacing
 from o3drbf.rbf.kernels import make_kernel
 from o3drbf.solvers import solve
 from o3drbf.surface import ImplicitSurface
-from o3drbf.tiles.cluster import run_tasks, tile_client
-from o3drbf.tiles.partition import Partition, kd_split
+from o3drbf.tiles.cluster import run_tasks, tile_client, worker_summary
+from o3drbf.tiles.partition import (
+    ArrayPoints,
+    Partition,
+    kd_split,
+    read_tile_points,
+    sample_indices,
+    scan_bounds,
+    spread_to_tiles,
+)
 from o3drbf.tiles.surface import TiledSurface
 from o3drbf.validation import as_points, as_vectors, check_number, shown
 
-__all__ = ["fit_tiled", "tile_count", "TILE_DEFAULTS"]
+__all__ = ["fit_tiled", "fit_tile", "point_source", "tile_count", "TILE_DEFAULTS"]
 
 log = logging.getLogger("o3drbf")
 
@@ -94,18 +104,17 @@ def _solve_single_thread(kernel, c: Constraints, solver: str):
         return solve(kernel, c.points, c.values, c.smoothing, method=solver)
 
 
-def fit_tile(t: int, box: np.ndarray | None = None, normals: np.ndarray | None = None, base: ImplicitSurface | None = None,
-             partition: Partition | None = None, settings: dict | None = None) -> tuple[ImplicitSurface, dict]:
+def fit_tile(t: int, store=None, base: ImplicitSurface | None = None, partition: Partition | None = None,
+             settings: dict | None = None) -> tuple[ImplicitSurface, dict]:
     """Fit tile ``t``'s residual g_t (a Dask task; everything in box coordinates).
 
     Parameters
     ----------
     t : int
         Tile index.
-    box : (N, 3) array
-        All points, normalized.
-    normals : (N, 3) array
-        Their unit normals.
+    store : str or (points (m, 3), normals (m, 3))
+        The points in the tile's support and their unit normals, normalized:
+        a per-tile file or a pair (:func:`o3drbf.tiles.partition.spread_to_tiles`).
     base : ImplicitSurface
         f0 (identity normalization).
     partition : Partition
@@ -121,14 +130,13 @@ def fit_tile(t: int, box: np.ndarray | None = None, normals: np.ndarray | None =
     """
     t0 = time.perf_counter()
     s = settings
-    idx = partition.in_support(box, t)
-    info = {"tile": t, "points": int(len(idx))}
-    if len(idx) < 10:
+    sub, nsub = read_tile_points(store)
+    info = {"tile": t, "points": int(len(sub))}
+    if len(sub) < 10:
         kernel = make_kernel("multiorder", delta=TILE_DEFAULTS["delta"], tau=TILE_DEFAULTS["tau"])
         g = ImplicitSurface(kernel, partition.centre[t][None], np.zeros(1), np.zeros(1), Normalization.identity())
         info.update(constraints=0, seconds=time.perf_counter() - t0, method="none")
         return g, info
-    sub, nsub = box[idx], normals[idx]
     seed = s["seed"] + 1 + t
     sidx = surface_constraints(sub, count=s["surface_count_per_tile"], seed=seed)
     surf = sub[sidx]
@@ -148,6 +156,45 @@ def fit_tile(t: int, box: np.ndarray | None = None, normals: np.ndarray | None =
         max_abs_target=float(np.abs(residual).max()), seconds=time.perf_counter() - t0,
     )
     return g, info
+
+
+def point_source(points, normals=None, seed: int = 0):
+    """The points of :func:`fit_tiled` as a chunked source.
+
+    A :class:`o3drbf.io.files.PlyVertices` (a memory-mapped binary PLY with
+    normals) is used as it is, never loaded whole; arrays or an Open3D cloud
+    are checked and wrapped (normals estimated with Open3D when missing).
+
+    Returns
+    -------
+    PlyVertices or ArrayPoints
+    """
+    from o3drbf.io.files import PlyVertices
+
+    if isinstance(points, ArrayPoints) and normals is None and points.has_normals:
+        return points
+    if isinstance(points, PlyVertices):
+        if normals is not None:
+            raise ValueError("normals come from the PLY file's nx, ny, nz; pass normals=None with a PlyVertices source")
+        if not points.has_normals:
+            raise ValueError(f"{points.path} has no normals (nx, ny, nz): the memory-mapped tiled path needs them; "
+                             "read the file into memory instead (normals are then estimated) or add normals")
+        if points.count < 10:
+            raise ValueError(f"{points.path}: {points.count} points, at least 10 needed")
+        return points
+    cloud_normals = None
+    if hasattr(points, "points") and not isinstance(points, np.ndarray):
+        if getattr(points, "has_normals", lambda: False)():
+            cloud_normals = np.asarray(points.normals)
+    pts = as_points(points, min_count=10)
+    if normals is None:
+        normals = cloud_normals
+    if normals is None:
+        from o3drbf.pipeline import estimate_normals
+
+        log.info("no normals given: estimating and orienting normals with Open3D (30 neighbours)")
+        normals = estimate_normals(pts, seed=seed)
+    return ArrayPoints(pts, as_vectors(normals, len(pts), name="normals"))
 
 
 def fit_tiled(
@@ -172,6 +219,9 @@ def fit_tiled(
     exterior_offset: float = TILE_DEFAULTS["exterior_offset"],
     sphere_count: int = TILE_DEFAULTS["sphere_count"],
     solver: str = "auto",
+    partition_sample: int = TILE_DEFAULTS["partition_sample"],
+    chunk_points: int = TILE_DEFAULTS["chunk_points"],
+    tile_dir=None,
     seed: int = 0,
     progress: bool = False,
 ) -> TiledSurface:
@@ -179,10 +229,15 @@ def fit_tiled(
 
     Parameters
     ----------
-    points : (N, 3) array_like or open3d.geometry.PointCloud
-        Surface samples (data coordinates), N >= 10.
+    points : (N, 3) array_like, open3d.geometry.PointCloud or o3drbf.io.files.PlyVertices
+        Surface samples (data coordinates), N >= 10.  A ``PlyVertices``
+        (:func:`o3drbf.io.files.open_ply_vertices`, a memory-mapped binary PLY
+        with normals) is read in chunks of ``chunk_points``: this process never
+        holds all the points, and each tile's points go to a file in
+        ``tile_dir`` that its worker reads.
     normals : (N, 3) array_like, optional
-        Outward normals; None: estimated with Open3D (o3drbf.pipeline.estimate_normals).
+        Outward normals; None: from the cloud or file, else estimated with Open3D
+        (o3drbf.pipeline.estimate_normals).
     tiles : "auto" or int
         Number of tiles; "auto": ``ceil(N / points_per_tile)``.
     client : None, "synchronous", scheduler address or distributed.Client
@@ -208,15 +263,29 @@ def fit_tiled(
         As in :func:`o3drbf.pipeline.reconstruct` (normalized box).
     solver : {"auto", "dense", "iterative", "fast"}
         For f0 and every tile.
+    partition_sample : int
+        At most this many points (a seeded uniform subsample, all of them when
+        N is smaller) decide the global steps: the noise estimate, f0's
+        constraints and the k-d cuts (the bounding box uses every point).
+    chunk_points : int
+        Points read and distributed at a time.
+    tile_dir : path, optional
+        Folder for the per-tile point files (storage every worker can read;
+        removed after the fit if created here).  Default: a temporary folder
+        when ``points`` is a file, per-tile arrays sent to each task otherwise.
     seed : int
         Seeds every random choice (tile t uses ``seed + 1 + t``).
     progress : bool
         One bar tick per finished tile.
 
+    The result depends only on the points (not on ``chunk_points``, the
+    scheduler or whether they came from a file or an array): bit-identical.
+
     Returns
     -------
     TiledSurface
-        ``metadata`` holds the per-tile records (``tiles``), the extraction
+        ``metadata`` holds the per-tile records (``tiles``), per-worker task
+        time and peak memory (``workers``), the extraction
         ``bounds`` (data box padded by 5 %), parameters and timings.
 
     Raises
@@ -225,21 +294,11 @@ def fit_tiled(
         Bad points, normals or parameters.
     """
     t_start = time.perf_counter()
-    cloud_normals = None
-    if hasattr(points, "points") and not isinstance(points, np.ndarray):
-        if getattr(points, "has_normals", lambda: False)():
-            cloud_normals = np.asarray(points.normals)
-    pts = as_points(points, min_count=10)
-    n = len(pts)
-    if normals is None:
-        normals = cloud_normals
-    if normals is None:
-        from o3drbf.pipeline import estimate_normals
-
-        log.info("no normals given: estimating and orienting normals with Open3D (30 neighbours)")
-        normals = estimate_normals(pts, seed=seed)
-    nrm = as_vectors(normals, n, name="normals")
+    source = point_source(points, normals, seed=seed)
+    n = source.count
     count = tile_count(n, tiles, points_per_tile)
+    partition_sample = check_number("partition_sample", partition_sample, low=100, integer=True)
+    chunk_points = check_number("chunk_points", chunk_points, low=1, integer=True)
     if surface_count_per_tile is not None:
         surface_count_per_tile = check_number("surface_count_per_tile", surface_count_per_tile, low=10, integer=True)
     global_count = check_number("global_count", global_count, low=10, integer=True)
@@ -252,8 +311,12 @@ def fit_tiled(
             check_number(name, v, low=0.0)
     seed = check_number("seed", seed, low=0, integer=True)
 
-    norm = Normalization.from_points(pts)
-    box = norm.forward(pts)
+    # One pass for the bounding box, one gather for the sample: never all the points at once.
+    data_lo, data_hi = scan_bounds(source, chunk_points)
+    norm = Normalization.from_points(np.array([data_lo, data_hi]))
+    sample_pts, nrm = source.gather(sample_indices(n, partition_sample, seed))
+    box = norm.forward(sample_pts)
+    del sample_pts
     noise = None
     if auto and None in (delta, tau, lambda_surface):
         from o3drbf.constraints.parameters import estimate_noise
@@ -265,7 +328,8 @@ def fit_tiled(
     idx0 = surface_constraints(box, count=global_count, seed=seed)
     surf0 = box[idx0]
     ext0 = exterior_from_normals(surf0, nrm[idx0], exterior_offset, int(round(exterior_ratio * len(idx0))), seed=seed, reference=box)
-    sph = bounding_sphere(box, sphere_count)
+    box_lo, box_hi = norm.forward(data_lo), norm.forward(data_hi)  # = the min / max of all points in the box
+    sph = bounding_sphere(np.array([box_lo, box_hi]), sphere_count)
     spacing0 = mean_spacing(surf0)
     kernel0, lam0 = _kernel_and_lambda(spacing0, noise, norm.scale, delta, tau, lambda_surface)
     c0 = Constraints.concat(
@@ -278,9 +342,8 @@ def fit_tiled(
     t_base = time.perf_counter() - t0
     log.info("tiles: global fit f0 on %d constraints (%s, %r) in %.1f s", len(c0), sol0.method, kernel0, t_base)
 
-    lo, hi = box.min(axis=0), box.max(axis=0)
-    pad = TILE_DEFAULTS["root_pad"] * float((hi - lo).max())
-    root = np.array([lo - pad, hi + pad])
+    pad = TILE_DEFAULTS["root_pad"] * float((box_hi - box_lo).max())
+    root = np.array([box_lo - pad, box_hi + pad])
     cells_lo, cells_hi = kd_split(box, count, root)
     partition = Partition.from_cells(cells_lo, cells_hi, overlap=overlap, min_overlap=min_overlap)
     settings = {
@@ -288,15 +351,36 @@ def fit_tiled(
         "exterior_offset": exterior_offset, "lambda_exterior": lambda_exterior, "noise": noise, "scale": norm.scale,
         "delta": delta, "tau": tau, "lambda_surface": lambda_surface, "solver": solver,
     }
+    del box, nrm
+    from o3drbf.io.files import PlyVertices
+
+    made_dir = None
+    if tile_dir is None and isinstance(source, PlyVertices):
+        import tempfile
+
+        tile_dir = made_dir = tempfile.mkdtemp(prefix="o3drbf-tiles-")
     t0 = time.perf_counter()
-    with tile_client(client, tasks=count, workers=workers, memory_limit=memory_limit) as c:
-        results = run_tasks(c, fit_tile, count, {"box": box, "normals": nrm, "base": base, "partition": partition, "settings": settings},
-                            progress=progress, desc="fitting tiles")
+    records: list = []
+    try:
+        stores, _ = spread_to_tiles(source, norm, partition, chunk_points, folder=tile_dir)
+        t_spread = time.perf_counter() - t0
+        log.info("tiles: %d points spread over %d tiles in %.1f s (%s)", n, count, t_spread,
+                 "per-tile arrays" if tile_dir is None else f"files in {tile_dir}")
+        with tile_client(client, tasks=count, workers=workers, memory_limit=memory_limit) as c:
+            results = run_tasks(c, fit_tile, count, {"base": base, "partition": partition, "settings": settings},
+                                per_task=[{"store": st} for st in stores], records=records,
+                                progress=progress, desc="fitting tiles")
+        del stores
+    finally:
+        if made_dir is not None:
+            import shutil
+
+            shutil.rmtree(made_dir, ignore_errors=True)
     t_tiles = time.perf_counter() - t0
     infos = [info for _, info in results]
     for info in infos:
         log.info("tile %d: %d points, %d constraints, %.1f s", info["tile"], info["points"], info["constraints"], info["seconds"])
-    dpad = 0.05 * float((pts.max(axis=0) - pts.min(axis=0)).max())
+    dpad = 0.05 * float((data_hi - data_lo).max())
     metadata = {
         "points": n,
         "tile_count": count,
@@ -307,7 +391,12 @@ def fit_tiled(
         "lambda_exterior": lambda_exterior,
         "exterior_offset": exterior_offset,
         "seed": seed,
-        "bounds": [(pts.min(axis=0) - dpad).tolist(), (pts.max(axis=0) + dpad).tolist()],
+        "bounds": [(data_lo - dpad).tolist(), (data_hi + dpad).tolist()],
+        "overlap": overlap,
+        "min_overlap": min_overlap,
+        "partition_sample": int(min(n, partition_sample)),
+        "workers": worker_summary(records),
+        "spread_seconds": t_spread,
         "tiles_seconds": t_tiles,
         "total_seconds": time.perf_counter() - t_start,
     }

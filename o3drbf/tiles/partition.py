@@ -20,7 +20,8 @@ import numpy as np
 
 from o3drbf.validation import as_points, check_number
 
-__all__ = ["Partition", "kd_split", "wendland", "wendland_derivative", "box_distance"]
+__all__ = ["Partition", "kd_split", "wendland", "wendland_derivative", "box_distance", "ArrayPoints", "scan_bounds",
+           "sample_indices", "spread_to_tiles", "read_tile_points"]
 
 
 def wendland(r: np.ndarray) -> np.ndarray:
@@ -202,3 +203,148 @@ def kd_split(points, count: int, bounds) -> tuple[np.ndarray, np.ndarray]:
 
     split(np.arange(len(pts)), b[0].copy(), b[1].copy(), count)
     return np.array(cells_lo), np.array(cells_hi)
+
+
+# -- points that need not fit in memory: chunked passes and per-tile stores -----------------
+
+
+class ArrayPoints:
+    """In-memory points with the chunk interface of :class:`o3drbf.io.files.PlyVertices`.
+
+    Parameters
+    ----------
+    points : (N, 3) array
+    normals : (N, 3) array or None
+    """
+
+    def __init__(self, points: np.ndarray, normals: np.ndarray | None):
+        self.points, self.normals = points, normals
+        self.count = len(points)
+        self.has_normals = normals is not None
+
+    def __len__(self) -> int:
+        return self.count
+
+    def take(self, start: int, stop: int):
+        nrm = None if self.normals is None else self.normals[start:stop]
+        return self.points[start:stop], nrm
+
+    def gather(self, index):
+        index = np.asarray(index, dtype=np.int64)
+        nrm = None if self.normals is None else self.normals[index]
+        return self.points[index], nrm
+
+    def chunks(self, size: int = 1_000_000):
+        size = max(1, int(size))
+        for start in range(0, self.count, size):
+            pts, nrm = self.take(start, min(start + size, self.count))
+            yield start, pts, nrm
+
+
+def scan_bounds(source, chunk: int) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi): the points' bounding box (data coordinates), one chunk at a time.
+
+    Raises
+    ------
+    ValueError
+        Non-finite coordinates or normals in some chunk (the first such vertex is named).
+    """
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for start, pts, nrm in source.chunks(chunk):
+        bad = ~np.isfinite(pts).all(axis=1)
+        if nrm is not None:
+            bad |= ~np.isfinite(nrm).all(axis=1)
+        if bad.any():
+            raise ValueError(f"point {start + int(np.flatnonzero(bad)[0])} has NaN or infinite coordinates or normals; fix or remove it")
+        lo = np.minimum(lo, pts.min(axis=0))
+        hi = np.maximum(hi, pts.max(axis=0))
+    return lo, hi
+
+
+def sample_indices(count: int, size: int, seed: int) -> np.ndarray:
+    """Sorted indices of a seeded uniform subsample of ``size`` of ``count`` points (all of them when count <= size)."""
+    if count <= size:
+        return np.arange(count)
+    return np.sort(np.random.default_rng(seed).choice(count, size=size, replace=False))
+
+
+def spread_to_tiles(source, normalization, partition: "Partition", chunk: int, folder=None) -> tuple[list, np.ndarray]:
+    """Hand each tile the points in its support (box coordinates), one chunk at a time.
+
+    Parameters
+    ----------
+    source : PlyVertices or ArrayPoints
+        Points with normals, data coordinates.
+    normalization : Normalization
+        Data -> box map.
+    partition : Partition
+    chunk : int
+        Points read at a time.
+    folder : path, optional
+        Where the per-tile files go (storage every worker can read); None:
+        per-tile arrays in this process.
+
+    Returns
+    -------
+    stores : list
+        Per tile: the path (str) of a float64 file of (m, 6) rows ``x y z nx ny nz``
+        (read it with :func:`read_tile_points`), or a ``(points, normals)`` pair.
+    counts : (T,) int array
+        Points per tile.
+
+    Tile ``t`` gets its points in input order, so the stores do not depend on ``chunk``.
+    """
+    from pathlib import Path
+
+    count = len(partition)
+    counts = np.zeros(count, dtype=np.int64)
+    parts: list = [[] for _ in range(count)]
+    paths = None
+    if folder is not None:
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        paths = [str(folder / f"tile-{t:05d}.f8") for t in range(count)]
+        for p in paths:
+            open(p, "wb").close()
+    for _, pts, nrm in source.chunks(chunk):
+        box = normalization.forward(pts)
+        # Sorted along each axis once per chunk: each tile tests only the points of its support's
+        # thinnest slab (fewest points) on one axis.
+        orders = [np.argsort(box[:, k], kind="stable") for k in range(3)]
+        keys = [box[o, k] for k, o in enumerate(orders)]
+        for t in range(count):
+            c, r = partition.centre[t], partition.rho[t]
+            ranges = [(np.searchsorted(keys[k], c[k] - r[k], "right"), np.searchsorted(keys[k], c[k] + r[k], "left")) for k in range(3)]
+            k = int(np.argmin([b - a for a, b in ranges]))
+            slab = np.sort(orders[k][ranges[k][0]:ranges[k][1]])
+            idx = slab[partition.in_support(box[slab], t)]
+            if idx.size == 0:
+                continue
+            counts[t] += idx.size
+            if paths is None:
+                parts[t].append((box[idx], nrm[idx]))
+            else:
+                with open(paths[t], "ab") as fh:
+                    np.ascontiguousarray(np.hstack([box[idx], nrm[idx]]), dtype="<f8").tofile(fh)
+    if paths is not None:
+        return paths, counts
+    stores = []
+    for t in range(count):
+        if parts[t]:
+            stores.append((np.concatenate([a for a, _ in parts[t]]), np.concatenate([b for _, b in parts[t]])))
+        else:
+            stores.append((np.zeros((0, 3)), np.zeros((0, 3))))
+        parts[t] = None
+    return stores, counts
+
+
+def read_tile_points(store) -> tuple[np.ndarray, np.ndarray]:
+    """(points (m, 3), normals (m, 3)) of one tile store from :func:`spread_to_tiles` (a path or a pair)."""
+    if isinstance(store, str):
+        rows = np.fromfile(store, dtype="<f8")
+        if rows.size % 6:
+            raise RuntimeError(f"tile store {store} is truncated ({rows.size} values, not rows of 6); rerun the fit")
+        rows = rows.reshape(-1, 6).astype(float)
+        return rows[:, :3].copy(), rows[:, 3:].copy()
+    return store
