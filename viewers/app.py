@@ -540,25 +540,9 @@ class ViewerApp(LayerToggles):
         """Check boxes (layers, in their colours: the legend) and two push buttons (save), in the control column."""
         p = self.plotter
         p.subplot(0, self.CONTROLS)
-        height = p.window_size[1]
-        size = max(12, int(0.024 * height))
-        step = size + max(4, int(0.01 * height))
-        y = int(0.31 * height)
         rows = [(name, f"{key}  {label}", COLORS[name]) for key, name, label, _ in LAYERS if not (name == "points" and self.data.points is None)]
         rows += [("save", "m  save mesh", None), ("shot", "k  screenshot", None)]
-        for name, label, color in rows:
-            if color is None:
-                callback = (lambda state, n=name: self._button_save(n))
-                value, color = False, "#777777"
-            else:
-                callback = (lambda state, n=name: self.set_layer(n, bool(state)))
-                value = self.visible[name]
-            self.actors[f"button_{name}"] = p.add_checkbox_button_widget(
-                callback, value=value, position=(10, y), size=size, border_size=2,
-                color_on=color, color_off="#ffffff", background_color="#a0a0a0",
-            )
-            p.add_text(label, position=(16 + size, y + 2), font_size=6, color="black", name=f"label_{name}")
-            y -= step
+        self.add_button_column(rows, self._button_save)
 
     def _button_save(self, what: str) -> None:
         self.actors[f"button_{what}"].GetRepresentation().SetState(0)  # a push button, not a toggle

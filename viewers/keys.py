@@ -110,3 +110,28 @@ class LayerToggles:
         """Flip one layer; returns whether it is now shown."""
         self.set_layer(name, not self.visible.get(name, False))
         return self.visible[name]
+
+    def add_button_column(self, rows, on_push) -> None:
+        """Check boxes (one per layer, in its colour: the legend) and push buttons, down the current subplot.
+
+        ``rows``: (name, label, colour) per button; colour None makes a push
+        button that calls ``on_push(name)``.  Needs ``self.plotter``.
+        """
+        p = self.plotter
+        height = p.window_size[1]
+        size = max(12, int(0.024 * height))
+        step = size + max(4, int(0.01 * height))
+        y = int(0.31 * height)
+        for name, label, color in rows:
+            if color is None:
+                callback = (lambda state, n=name: on_push(n))
+                value, color = False, "#777777"
+            else:
+                callback = (lambda state, n=name: self.set_layer(n, bool(state)))
+                value = self.visible[name]
+            self.actors[f"button_{name}"] = p.add_checkbox_button_widget(
+                callback, value=value, position=(10, y), size=size, border_size=2,
+                color_on=color, color_off="#ffffff", background_color="#a0a0a0",
+            )
+            p.add_text(label, position=(16 + size, y + 2), font_size=6, color="black", name=f"label_{name}")
+            y -= step

@@ -215,25 +215,8 @@ class MeshViewerApp(LayerToggles):
 
     def _add_buttons(self) -> None:
         """Check boxes for the layers and a push button for the screenshot, in the control column."""
-        p = self.plotter
-        height = p.window_size[1]
-        size = max(12, int(0.024 * height))
-        step = size + max(4, int(0.01 * height))
-        y = int(0.31 * height)
         rows = [(name, f"{key}  {label}", _COLORS[name]) for key, name, label, _ in MESH_LAYERS] + [("shot", "k  screenshot", None)]
-        for name, label, color in rows:
-            if color is None:
-                callback = (lambda state, n=name: self._button_shot(n))
-                value, color = False, "#777777"
-            else:
-                callback = (lambda state, n=name: self.set_layer(n, bool(state)))
-                value = self.visible[name]
-            self.actors[f"button_{name}"] = p.add_checkbox_button_widget(
-                callback, value=value, position=(10, y), size=size, border_size=2,
-                color_on=color, color_off="#ffffff", background_color="#a0a0a0",
-            )
-            p.add_text(label, position=(16 + size, y + 2), font_size=6, color="black", name=f"label_{name}")
-            y -= step
+        self.add_button_column(rows, self._button_shot)
 
     def _button_shot(self, name: str) -> None:
         self.actors[f"button_{name}"].GetRepresentation().SetState(0)  # a push button
