@@ -249,7 +249,7 @@ def run_photos(
         bounds=cv.bounds,
         seed=seed,
         progress=progress,
-        **reconstruct_options,
+        **{"denoise": PHOTO_DEFAULTS["denoise"], **reconstruct_options},
     )
     stats["reconstruct_seconds"] = time.perf_counter() - t0
     stats["reconstruct"] = rec.stats
