@@ -43,11 +43,21 @@ def execute(path: str | os.PathLike, timeout: int = 120):
 
     path = Path(path)
     nb = nbformat.read(path, as_version=4)
+    saved = {k: os.environ.get(k) for k in ("PYTHONPATH", "O3DRBF_NO_PROGRESS")}
+    # the kernel inherits this process's environment: the repository first, no tqdm widgets in the outputs;
+    # restored afterwards, so nothing later in this process (e.g. a pip subprocess) sees the repository on its path
     os.environ["PYTHONPATH"] = os.pathsep.join([str(REPO)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p])
-    os.environ.setdefault("O3DRBF_NO_PROGRESS", "1")  # no tqdm widgets in the outputs
-    client = NotebookClient(nb, timeout=timeout, kernel_name="python3", resources={"metadata": {"path": str(path.parent)}},
-                            extra_arguments=["--IPKernelApp.log_level=ERROR"])  # no warning about its local TCP sockets
-    client.execute()
+    os.environ.setdefault("O3DRBF_NO_PROGRESS", "1")
+    try:
+        client = NotebookClient(nb, timeout=timeout, kernel_name="python3", resources={"metadata": {"path": str(path.parent)}},
+                                extra_arguments=["--IPKernelApp.log_level=ERROR"])  # no warning about its local TCP sockets
+        client.execute()
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
     return nb
 
 

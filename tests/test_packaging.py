@@ -82,8 +82,9 @@ def fresh_venv(path: Path, package: Path, deps: Path) -> Path:
     pth = site / "o3drbf_test_dependencies.pth"
     if package.name.endswith(".tar.gz"):
         pth.write_text(f"{deps}\n")  # the sdist's build needs setuptools in that venv (--no-build-isolation)
+    # no PYTHONPATH: with the repository on it, pip would find o3drbf "already satisfied" and install nothing
     run([sys.executable, "-m", "pip", "--python", python, "install", "-q", "--no-deps", "--no-index", "--no-build-isolation", package],
-        cwd=path)
+        cwd=path, env={k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")})
     pth.write_text(f"{deps}\n")
     return path
 

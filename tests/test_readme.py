@@ -1,4 +1,4 @@
-"""The README's Python examples run as written."""
+"""The README is true: its Python examples run as written, its option table is the parser's, its summary is a fresh run's."""
 
 import re
 
@@ -36,3 +36,26 @@ def test_readme_option_table_matches_the_parser():
     options = {o for o in options if o not in ("--quiet", "--verbose")}  # shown as -q, -v
     assert documented == options, (documented - options, options - documented)
     assert all(a.help for a in sub._actions if a.option_strings), "every option has help text"
+
+
+def summary_fields(text: str) -> list[str]:
+    """The field names of an ``o3drbf reconstruct`` summary: each indented line's words before the column gap."""
+    return [re.split(r"\s{2,}", line.strip())[0] for line in text.splitlines() if line.startswith("  ") and line.strip()]
+
+
+def test_readme_summary_block_has_the_fields_of_a_fresh_run(tmp_path, capsys):
+    """The README's summary (noisy range scans with cameras) lists the lines a fresh run of the same kind prints, in order."""
+    import open3d as o3d
+
+    from o3drbf.cli.commands import main
+    from o3drbf.synthetic.scans import range_scans, write_scan_json
+
+    text = (REPO / "README.md").read_text()
+    block = next(b for b in re.findall(r"```\n(.*?)```", text, flags=re.S) if b.startswith("o3drbf reconstruct: "))
+    torus = o3d.geometry.TriangleMesh.create_torus(0.6, 0.25, 48, 24)
+    points, owner, cams = range_scans(torus, n_views=3, width=60, height=45, noise=0.01, seed=0)
+    scan = write_scan_json(tmp_path / "scan.json", points, cams, owner)
+    assert main(["reconstruct", str(scan), "-o", str(tmp_path / "mesh.ply"), "--resolution", "32"]) == 0
+    fresh = capsys.readouterr().out
+    assert "denoised" in summary_fields(fresh)
+    assert summary_fields(block) == summary_fields(fresh)
