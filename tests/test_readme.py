@@ -51,9 +51,9 @@ def test_readme_summary_block_has_the_fields_of_a_fresh_run(tmp_path, capsys):
     from o3drbf.synthetic.scans import range_scans, write_scan_json
 
     text = (REPO / "README.md").read_text()
-    block = next(b for b in re.findall(r"```\n(.*?)```", text, flags=re.S) if b.startswith("o3drbf reconstruct: "))
+    block = re.search(r"\n```\n(o3drbf reconstruct: .*?)```", text, flags=re.S).group(1)
     torus = o3d.geometry.TriangleMesh.create_torus(0.6, 0.25, 48, 24)
-    points, owner, cams = range_scans(torus, n_views=3, width=60, height=45, noise=0.01, seed=0)
+    points, owner, cams = range_scans(torus, n_views=3, width=160, height=120, noise=0.01, seed=0)  # more points than constraints
     scan = write_scan_json(tmp_path / "scan.json", points, cams, owner)
     assert main(["reconstruct", str(scan), "-o", str(tmp_path / "mesh.ply"), "--resolution", "32"]) == 0
     fresh = capsys.readouterr().out

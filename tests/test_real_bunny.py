@@ -163,7 +163,7 @@ def test_fig8_synthetic_scans_give_a_closed_manifold_mesh(zipper):
 
 def test_default_command_reaches_poisson_detail_on_the_dense_scans(scans, zipper):
     # The automatic sizes give 30,000 constraints and 256 cells for 362k points.
-    # Measured: Chamfer L1 0.080 mm (3,000 constraints at 96 cells: 0.24 mm;
+    # Measured: Chamfer L1 0.065 mm with denoised constraints, 0.080 mm without (3,000 constraints at 96 cells: 0.24 mm;
     # Open3D Poisson depth 9 about 0.07 mm), closed, one piece, genus 0.
     r = reconstruct(scans.points, cameras=scans, point_camera=scans.point_camera)
     assert r.report.surface_constraints > 25_000 and r.report.resolution == 256
