@@ -21,7 +21,7 @@ from o3drbf.rbf.kernels import Kernel, make_kernel
 from o3drbf.prep.normalize import Normalization
 from o3drbf.rbf.sums import DEFAULT_CHUNK_BYTES, kernel_sum, polynomial_basis
 
-__all__ = ["DataCoordinates", "ImplicitSurface"]
+__all__ = ["DataCoordinates", "ImplicitSurface", "json_default"]
 
 _FORMAT = "o3drbf-implicit-surface"
 _VERSION = 1
@@ -153,7 +153,7 @@ class ImplicitSurface(DataCoordinates):
             with open(tmp, "wb") as fh:
                 np.savez(
                     fh,
-                    header=np.array(json.dumps(header, default=_json_default)),
+                    header=np.array(json.dumps(header, default=json_default)),
                     centres=self.centres,
                     weights=self.weights,
                     poly=self.poly,
@@ -276,7 +276,8 @@ def _one_line(exc: BaseException) -> str:
     return " ".join(str(exc).split()) or type(exc).__name__
 
 
-def _json_default(o):
+def json_default(o):
+    """``json.dumps`` default for the model headers: NumPy arrays and scalars as plain lists and numbers."""
     if isinstance(o, np.ndarray):
         return o.tolist()
     if isinstance(o, (np.floating, np.integer)):

@@ -19,7 +19,7 @@ import numpy as np
 from o3drbf.io.files import atomic_path
 from o3drbf.prep.normalize import Normalization
 from o3drbf.rbf.kernels import make_kernel
-from o3drbf.surface import DataCoordinates, ImplicitSurface
+from o3drbf.surface import DataCoordinates, ImplicitSurface, json_default
 from o3drbf.tiles.partition import Partition, box_distance, wendland, wendland_derivative
 
 __all__ = ["TiledSurface"]
@@ -149,7 +149,7 @@ class TiledSurface(DataCoordinates):
             with open(tmp, "wb") as fh:
                 np.savez(
                     fh,
-                    header=np.array(json.dumps(header, default=_json_default)),
+                    header=np.array(json.dumps(header, default=json_default)),
                     centres=np.concatenate([p.centres for p in parts]),
                     weights=np.concatenate([p.weights for p in parts]),
                     poly=np.concatenate([p.poly for p in parts]),
@@ -219,11 +219,3 @@ class TiledSurface(DataCoordinates):
         partition = Partition(a["tile_lo"], a["tile_hi"], a["tile_centre"], a["tile_rho"])
         norm = Normalization(center=a["center"], scale=float(a["scale"]))
         return cls(parts[0], parts[1:], partition, norm, header.get("metadata", {}))
-
-
-def _json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    raise TypeError(f"not JSON serializable: {type(o).__name__}")
