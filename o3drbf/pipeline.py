@@ -28,8 +28,9 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from o3drbf.constraints.core import EXTERIOR, SPHERE, SURFACE, Constraints, bounding_sphere, exterior_from_normals, surface_constraints
-from o3drbf.options import (DEFAULTS, DENOISE_MIN_NOISE, PAPER_VALUES, auto_resolution, auto_surface_count, ConfidenceOptions, ConstraintOptions,
+from o3drbf.options import (AUTO_SIZES, DEFAULTS, DENOISE_MIN_NOISE, PAPER_VALUES, SPECK_SPACINGS, auto_resolution, auto_surface_count, ConfidenceOptions, ConstraintOptions,
                             ExtractOptions, FitOptions, Options, OutlierOptions, ParameterOptions)
+from o3drbf.mesh.metrics import drop_specks
 from o3drbf.pointset import PointSet
 from o3drbf.prep.normalize import Normalization, check_spans_volume
 from o3drbf.prep.sampling import mean_spacing
@@ -218,6 +219,10 @@ class Report:
         Rounds, down-weighted and dropped constraints, the residual scale.
     constraints_seconds, solve_seconds, extract_seconds, total_seconds : float
     vertices, triangles : int or None
+    specks_removed : int
+        Mesh pieces under ``SPECK_SPACINGS`` constraint spacings across
+        removed (:func:`o3drbf.mesh.metrics.drop_specks`): zero crossings of
+        f around a single stray constraint.
     resolution : int or None
         Marching-cubes cells along the longest side (after "auto").
     stages : list of StageTiming
@@ -258,6 +263,7 @@ class Report:
     total_seconds: float = 0.0
     vertices: int | None = None
     triangles: int | None = None
+    specks_removed: int = 0
     resolution: int | None = None
     stages: list = field(default_factory=list)
     confidence: dict | None = None
@@ -565,7 +571,8 @@ def build_constraints(data: PointSet, options: ConstraintOptions = ConstraintOpt
     count = None if options.surface_radius is not None else options.surface_count
     if count is None and options.surface_radius is None:
         log.info("surface_count=None: every point is a surface constraint")
-    if count == "auto":
+    auto_count = count == "auto"
+    if auto_count:
         count = auto_surface_count(len(data))
     pts = data.points
     norm = Normalization.from_points(pts)
@@ -580,7 +587,16 @@ def build_constraints(data: PointSet, options: ConstraintOptions = ConstraintOpt
 
         noise = estimate_noise(box, seed=seed)
         constraint_noise = noise
-        if options.denoise is True or noise > DENOISE_MIN_NOISE * spacing:
+        # One decision at the default spacing: noisy points are denoised, clean ones get denser constraints.
+        denoise = options.denoise is True or noise > DENOISE_MIN_NOISE * spacing
+        if auto_count and not denoise and auto_surface_count(len(data), clean=True) > len(idx):
+            count = auto_surface_count(len(data), clean=True)
+            idx = surface_constraints(box, count=count, seed=seed)
+            surf = box[idx]
+            spacing = mean_spacing(surf)
+            log.info("clean points (noise %.3g box units): %d surface constraints (points / %d)", noise, len(idx),
+                     AUTO_SIZES["points_per_constraint_clean"])
+        if denoise:
             k = neighbourhood_size(len(box), len(surf))
             moved_data, offset, gain = project_to_local_surface(pts, norm.inverse(surf), k=k, tree=data.kdtree, noise=noise / norm.scale)
             surf, offset = norm.forward(moved_data), offset * norm.scale
@@ -664,7 +680,8 @@ def choose_parameters(data: PointSet, cset: ConstraintSet, options: ParameterOpt
 
         noise = cset.noise if np.isfinite(cset.noise) else estimate_noise(box, seed=seed)
         # The smoothing follows the noise the constraints carry: after denoising, theirs, not the points'.
-        chosen = parameters_from(cset.spacing, cset.constraint_noise if cset.denoised else noise, cset.normalization.scale)
+        chosen = parameters_from(cset.spacing, cset.constraint_noise if cset.denoised else noise, cset.normalization.scale,
+                                 denoised=bool(cset.denoised))
         log.info("automatic parameters: %s", chosen.reason)
         given = {**{"delta": chosen.delta, "tau": chosen.tau}, **given}
     if isinstance(options.kernel, Kernel):
@@ -929,10 +946,13 @@ def reconstruct(points, normals=None, *, cameras=None, point_camera=None, colors
     with stages.stage("fit"):
         surface, sol, robust = fit_surface(cset, params, opts.fit, progress=progress)
     surface.metadata["seed"] = seed
-    mesh = None
+    mesh, specks = None, 0
     if extract_mesh:
         with stages.stage("extract"):
             mesh = mesh_surface(surface, opts.extract, progress=progress)
+            mesh, specks = drop_specks(mesh, SPECK_SPACINGS * cset.spacing / cset.normalization.scale)
+            if specks:
+                log.info("removed %d speck(s) under %g constraint spacings across", specks, SPECK_SPACINGS)
         if data.colors is not None:
             with stages.stage("colour"):
                 mesh = colour(mesh, data)
@@ -976,6 +996,7 @@ def reconstruct(points, normals=None, *, cameras=None, point_camera=None, colors
         solve_seconds=sol.seconds,
         extract_seconds=stages.seconds("extract"),
         total_seconds=time.perf_counter() - t_start,
+        specks_removed=specks,
         vertices=None if mesh is None else len(mesh.vertices),
         triangles=None if mesh is None else len(mesh.triangles),
         resolution=None if mesh is None or opts.extract.voxel_size is not None else (

@@ -33,16 +33,19 @@ SCAN = dict(n_views=3, elevation=20.0, width=120, height=90, noise=NOISE, outlie
 FIT = ["--outliers", "largest", "--surface-count", "1500", "--resolution", "64"]
 
 # Area-weighted mean |signed distance| of the reconstruction to the analytic torus.
-# Measured with the default (automatic) parameters: 0.0033 over the whole mesh
-# and 0.0018 over the upper half (z > 0) for this scan (the paper's fixed
+# Measured with the default (automatic) parameters: 0.0086 over the whole mesh
+# and 0.0017 over the upper half (z > 0) for this scan (the paper's fixed
 # parameters: 0.0144 and 0.0039).  The upper half is seen by all three
 # scanners, so its error is below the ray noise (sigma 0.003): bound 0.003.
 # The underside is seen by no scanner and is filled in by the regularization
-# alone, hence the whole-surface bound 0.006 (1.8x the measurement).  Both can
-# fail: moving the mesh down by 0.01 gives 0.0083 on the upper half, moving it
-# sideways by 0.02 gives 0.0094 overall, scaling it by 1.02 gives 0.0095 /
-# 0.0096 (checked in the test).
-MEAN_BOUND = 0.006
+# alone: the delta floor of 8 (o3drbf.constraints.parameters) closes unseen
+# regions flatter, right for the flat undersides of parts, a little flat for
+# a torus's round one (0.0044 at delta 4, 0.0065 at 6), hence the
+# whole-surface bound 0.011 (1.3x the measurement).  Both can fail: moving
+# the mesh down by 0.01 gives 0.0081 on the upper half, moving it sideways by
+# 0.02 gives 0.0142 overall, scaling it by 1.02 gives 0.0148 / 0.0098
+# (checked in the test).
+MEAN_BOUND = 0.011
 UPPER_MEAN_BOUND = 0.003
 
 

@@ -480,6 +480,7 @@ def test_public_names():
         "f_score",
         "normal_consistency",
         "mesh_report",
+        "drop_specks",
     }
 
 
@@ -492,3 +493,22 @@ def test_point_distances_to_a_unit_square():
     assert metrics.point_distances(pts, square) == pytest.approx([0.3, 0.05, 1.0, 5.0], abs=1e-6)
     with pytest.raises(ValueError):
         metrics.point_distances(np.zeros((2, 2)), square)
+
+
+def test_drop_specks_removes_only_pieces_smaller_than_the_size():
+    from o3drbf.mesh.metrics import drop_specks
+
+    big = o3d.geometry.TriangleMesh.create_sphere(1.0, resolution=20)
+    speck = o3d.geometry.TriangleMesh.create_sphere(0.02, resolution=4).translate((3.0, 0.0, 0.0))  # 0.069 across
+    small_object = o3d.geometry.TriangleMesh.create_sphere(0.1, resolution=6).translate((-3.0, 0.0, 0.0))  # 0.35 across
+    mesh = big + speck + small_object
+    n_big, n_small = len(big.triangles), len(small_object.triangles)
+    out, removed = drop_specks(o3d.geometry.TriangleMesh(mesh), 0.1)
+    assert removed == 1 and len(out.triangles) == n_big + n_small
+    assert np.asarray(out.vertices)[:, 0].max() < 1.01  # the speck at x = 3 is gone, the rest untouched
+    assert mesh_report(out)["components"] == 2 and mesh_report(out)["watertight"]
+    # Never all of it: a mesh made only of specks stays as it is.
+    only, removed = drop_specks(o3d.geometry.TriangleMesh(speck), 1.0)
+    assert removed == 0 and len(only.triangles) == len(speck.triangles)
+    # size 0 removes nothing
+    assert drop_specks(o3d.geometry.TriangleMesh(mesh), 0.0)[1] == 0

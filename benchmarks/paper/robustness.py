@@ -84,7 +84,7 @@ FSCORE_PCT = 1.0  # F-score distance threshold, % of the diagonal
 F_TIE = 0.005
 TRIM_QUANTILE = 0.05
 COLUMNS = ("mesh", "views", "outliers_pct", "noise_pct", "misregistration_pct", "method", "points", "chamfer_l1", "f_score", "normal_consistency", "watertight",
-           "delta", "tau", "lambda_surface", "noise_estimate", "seconds", "error")
+           "delta", "tau", "lambda_surface", "surface_constraints", "noise_estimate", "seconds", "error")
 
 
 def make_mesh(name: str):
@@ -183,7 +183,7 @@ def run_case(mesh_name, mesh, views, outliers_pct, noise_pct, misregistration_pc
         sizes = {k: v for k, v in (("surface_count", args.surface_count), ("resolution", args.resolution)) if v is not None}
         rec = reconstruct(raw, cameras=cams, point_camera=raw_owner, seed=args.seed, **sizes)
         p = rec.report.parameters
-        row.update(delta=p["delta"], tau=p["tau"], lambda_surface=p["lambda_surface"])
+        row.update(delta=p["delta"], tau=p["tau"], lambda_surface=p["lambda_surface"], surface_constraints=rec.report.surface_constraints)
         row["seconds"] = time.perf_counter() - t
         row.update(measure(rec.mesh, mesh, args.seed))
     except (RuntimeError, ValueError) as exc:
@@ -310,6 +310,29 @@ def summary(rows) -> str:
     return "\n".join(out)
 
 
+def by_solid(rows) -> str:
+    """One line per solid: cells won with 3 and with 6 views, and the median Chamfer ratio to the better Poisson (the README's table)."""
+    import numpy as np
+
+    by = {_key(r): r for r in rows}
+    v = verdicts(rows)
+    out = ["| solid | views | cells won | Chamfer ratio (median) |", "|---|---|---|---|"]
+    for mesh in [m for m in MESHES if any(c[0] == m for c in v)]:
+        won, ratio = [], []
+        for views in VIEWS:
+            cells = [c for c in v if c[0] == mesh and c[1] == views]
+            rs = []
+            for c in cells:
+                a = by[c + ("o3drbf",)]
+                peers = [by[c + (m,)]["chamfer_l1"] for m in ("poisson", "poisson-trim") if by[c + (m,)].get("chamfer_l1") is not None]
+                if a.get("chamfer_l1") is not None and peers:
+                    rs.append(a["chamfer_l1"] / min(peers))
+            won.append(f"{sum(v[c]['beats'] for c in cells)} of {len(cells)}")
+            ratio.append(f"{np.median(rs):.2f}x" if rs else "-")
+        out.append(f"| {mesh} | {' / '.join(str(x) for x in VIEWS)} | {' / '.join(won)} | {' / '.join(ratio)} |")
+    return "\n".join(out)
+
+
 def plot(rows, path: Path) -> str:
     """Chamfer L1 (relative to the mesh's diagonal) vs noise; one panel per (outliers, views), no misregistration.
 
@@ -379,6 +402,7 @@ def write_outputs(rows, out: Path, settings: str) -> None:
     text = "\n".join([
         "# Robustness: o3drbf's defaults vs Open3D Poisson on synthetic range scans", "", settings, "",
         "## Summary over the meshes", "", summary(rows), "", *[f"- {line}" for line in wins(rows)], "",
+        "## By solid", "", by_solid(rows), "",
         "## Every cell", "",
         f"Cells: Chamfer L1 to the true mesh (data units) / F-score at {FSCORE_PCT:g} % of the diagonal / watertight (Open3D).", "",
         table(rows), "",

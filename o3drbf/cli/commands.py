@@ -369,7 +369,8 @@ def summary(result, points, input_path, output_path, model_path=None, seconds=No
                      f"{r.get('dropped', 0):,} dropped (residual scale {r.get('scale', float('nan')):.2g} box units)")
     lines += [
         f"  mesh             {s.triangles:,} triangles, {s.vertices:,} vertices"
-        + (f", {s.resolution} cells on the longest side" if s.resolution else "") + f", extracted in {s.extract_seconds:.2f} s",
+        + (f", {s.resolution} cells on the longest side" if s.resolution else "") + f", extracted in {s.extract_seconds:.2f} s"
+        + (f"; {s.specks_removed} speck(s) under two constraint spacings across removed" if s.specks_removed else ""),
         f"  watertight       {'yes' if rep['watertight'] else 'NO'} (Open3D's is_watertight: closed, manifold, "
         f"{rep['self_intersections'] or 'no'} self-intersecting triangle pair(s)), "
         f"Euler characteristic {rep['euler_characteristic']}, {rep['components']} component(s)",

@@ -39,6 +39,7 @@ __all__ = [
     "f_score",
     "normal_consistency",
     "mesh_report",
+    "drop_specks",
 ]
 
 # A triangle whose doubled area is below this fraction of its longest edge
@@ -571,3 +572,48 @@ def mesh_report(mesh: Any, self_intersections: bool = True) -> dict[str, Any]:
         "area": float(area.sum()),
         "volume": volume,
     }
+
+
+def drop_specks(mesh, size: float):
+    """Remove the mesh's pieces smaller than ``size`` across (their bounding-box diagonal), never all of them.
+
+    Marching cubes turns a zero crossing of f around a single stray
+    constraint into a closed speck a grid cell or two across: not a surface
+    the grid can resolve, nor one a scan shows (an object that small is
+    covered by at most a few points).
+
+    Parameters
+    ----------
+    mesh : open3d.geometry.TriangleMesh
+        Changed in place.
+    size : float
+        Data units; pieces whose bounding-box diagonal is below it go.
+
+    Returns
+    -------
+    mesh : open3d.geometry.TriangleMesh
+    removed : int
+        Pieces removed.
+    """
+    import open3d as o3d
+
+    size = check_number("size", size, low=0.0)
+    if len(mesh.triangles) == 0 or size == 0:
+        return mesh, 0
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        labels, _, _ = mesh.cluster_connected_triangles()
+    labels = np.asarray(labels)
+    n = int(labels.max()) + 1
+    if n < 2:
+        return mesh, 0
+    corners = np.asarray(mesh.vertices)[np.asarray(mesh.triangles)]  # (F, 3, 3)
+    lo = np.full((n, 3), np.inf)
+    hi = np.full((n, 3), -np.inf)
+    np.minimum.at(lo, labels, corners.min(axis=1))
+    np.maximum.at(hi, labels, corners.max(axis=1))
+    small = np.linalg.norm(hi - lo, axis=1) < size
+    if small.all() or not small.any():
+        return mesh, 0
+    mesh.remove_triangles_by_mask(small[labels])
+    mesh.remove_unreferenced_vertices()
+    return mesh, int(small.sum())
