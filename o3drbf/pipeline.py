@@ -28,8 +28,8 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from o3drbf.constraints.core import EXTERIOR, SPHERE, SURFACE, Constraints, bounding_sphere, exterior_from_normals, surface_constraints
-from o3drbf.options import (AUTO_SIZES, DEFAULTS, DENOISE_MIN_NOISE, PAPER_VALUES, SPECK_SPACINGS, auto_resolution, auto_surface_count, ConfidenceOptions, ConstraintOptions,
-                            ExtractOptions, FitOptions, Options, OutlierOptions, ParameterOptions)
+from o3drbf.options import (AUTO_SIZES, DEFAULTS, DENOISE_MIN_NOISE, PAPER_VALUES, SPECK_SPACINGS, auto_resolution, auto_surface_count,
+                            ConfidenceOptions, ConstraintOptions, ExtractOptions, FitOptions, Options, OutlierOptions, ParameterOptions)
 from o3drbf.mesh.metrics import drop_specks
 from o3drbf.pointset import PointSet
 from o3drbf.prep.normalize import Normalization, check_spans_volume
