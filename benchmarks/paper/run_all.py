@@ -1,4 +1,4 @@
-"""Run every paper experiment (Figs. 2, 3/4, 7, 8, the parameter study and the robustness study) and print their tables.
+"""Run every paper experiment (Figs. 2, 3/4, 7, 8, the parameter study, the robustness study and its settings sweep) and print their tables.
 
 Each script runs as a subprocess with the same interpreter, writing into
 ``OUT/<name>`` (default ``results/``; the robustness study writes into
@@ -28,6 +28,8 @@ SCRIPTS = {
     "parameters": ("parameter_study.py", "parameters"),
     # Writes robustness.md/.csv/.json/.png straight into OUT (results/paper/robustness.md).
     "robustness": ("robustness.py", "."),
+    # The fixed-parameter sweep on the study's cells without outliers: settings.md beside robustness.md.
+    "settings": ("settings.py", "."),
 }
 
 
