@@ -282,6 +282,15 @@ def table(rows) -> str:
     return "\n".join(out)
 
 
+def against_poisson(by: dict, case: tuple):
+    """(o3drbf's Chamfer / the better Poisson's, o3drbf's F-score - the better Poisson's) for one cell, or None when a run failed."""
+    a = by[case + ("o3drbf",)]
+    peers = [by[case + (m,)] for m in ("poisson", "poisson-trim") if by[case + (m,)].get("chamfer_l1") is not None]
+    if a.get("chamfer_l1") is None or not peers:
+        return None
+    return a["chamfer_l1"] / min(p["chamfer_l1"] for p in peers), a["f_score"] - max(p["f_score"] for p in peers)
+
+
 def summary(rows) -> str:
     """One line per (views, misregistration, outliers, noise) over the meshes: wins, Chamfer and F-score ratios, watertight."""
     import numpy as np
@@ -293,14 +302,8 @@ def summary(rows) -> str:
            "| F-score: o3drbf - best Poisson (median) | watertight: o3drbf / Poisson |", "|---|---|---|---|---|---|---|---|"]
     for g in groups:
         cells = [c for c in v if (c[1], c[4], c[2], c[3]) == g]
-        ratios, dfs = [], []
-        for c in cells:
-            a = by[c + ("o3drbf",)]
-            peers = [by[c + (m,)] for m in ("poisson", "poisson-trim") if by[c + (m,)].get("chamfer_l1") is not None]
-            if a.get("chamfer_l1") is None or not peers:
-                continue
-            ratios.append(a["chamfer_l1"] / min(p["chamfer_l1"] for p in peers))
-            dfs.append(a["f_score"] - max(p["f_score"] for p in peers))
+        against = [x for x in (against_poisson(by, c) for c in cells) if x is not None]
+        ratios, dfs = [x[0] for x in against], [x[1] for x in against]
         wins_ = sum(v[c]["beats"] for c in cells)
         closed = sum(v[c]["watertight"] for c in cells)
         pclosed = sum(bool(by[c + ("poisson",)].get("watertight")) for c in cells)
@@ -321,12 +324,7 @@ def by_solid(rows) -> str:
         won, ratio = [], []
         for views in VIEWS:
             cells = [c for c in v if c[0] == mesh and c[1] == views]
-            rs = []
-            for c in cells:
-                a = by[c + ("o3drbf",)]
-                peers = [by[c + (m,)]["chamfer_l1"] for m in ("poisson", "poisson-trim") if by[c + (m,)].get("chamfer_l1") is not None]
-                if a.get("chamfer_l1") is not None and peers:
-                    rs.append(a["chamfer_l1"] / min(peers))
+            rs = [x[0] for x in (against_poisson(by, c) for c in cells) if x is not None]
             won.append(f"{sum(v[c]['beats'] for c in cells)} of {len(cells)}")
             ratio.append(f"{np.median(rs):.2f}x" if rs else "-")
         out.append(f"| {mesh} | {' / '.join(str(x) for x in VIEWS)} | {' / '.join(won)} | {' / '.join(ratio)} |")

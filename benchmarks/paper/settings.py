@@ -58,6 +58,22 @@ def cells(meshes) -> list[tuple]:
     return out
 
 
+def study_defaults(path: Path) -> dict:
+    """The o3drbf rows of a robustness.jsonl without outliers, as default rows of this sweep, by (mesh, views, noise, misreg.).
+
+    Only rows that record their surface-constraint count (the "2x constraints" setting needs it).
+    """
+    out = {}
+    for line in path.read_text().splitlines() if path.exists() else []:
+        r = json.loads(line) if line.strip() else {}
+        if r.get("method") != "o3drbf" or r.get("outliers_pct") != 0.0 or r.get("chamfer_l1") is None or not r.get("surface_constraints"):
+            continue
+        row = {k: r.get(k) for k in ("mesh", "views", "noise_pct", "misregistration_pct", "delta", "tau", "lambda_surface",
+                                     "surface_constraints", "seconds", "chamfer_l1", "f_score", "normal_consistency", "watertight")}
+        out[(r["mesh"], r["views"], r["noise_pct"], r["misregistration_pct"])] = dict(row, setting="default", options={}, from_study=True)
+    return out
+
+
 def run(mesh_name, mesh, views, noise, misreg, setting, params, seed) -> dict:
     """One reconstruction with ``setting`` (None: the defaults), measured as the study measures."""
     from o3drbf import reconstruct
@@ -122,24 +138,18 @@ def main(argv=None) -> int:
         log_path.unlink()
     rows = [json.loads(line) for line in log_path.read_text().splitlines() if line.strip()] if log_path.exists() else []
     done = {(r["mesh"], r["views"], r["noise_pct"], r["misregistration_pct"], r["setting"]) for r in rows}
+    studied = study_defaults(Path(args.study)) if args.study else {}
     meshes = {}
     for (m, v, nz, g) in cells(args.meshes):
         if m not in meshes:
             meshes[m] = study.make_mesh(m)
         default = next((r for r in rows if (r["mesh"], r["views"], r["noise_pct"], r["misregistration_pct"], r["setting"]) == (m, v, nz, g, "default")), None)
-        if default is None and args.study and Path(args.study).exists():
-            for line in Path(args.study).read_text().splitlines():
-                r = json.loads(line) if line.strip() else {}
-                if (r.get("method"), r.get("mesh"), r.get("views"), r.get("outliers_pct"), r.get("noise_pct"), r.get("misregistration_pct")) == (
-                        "o3drbf", m, v, 0.0, nz, g) and r.get("chamfer_l1") is not None and r.get("surface_constraints"):
-                    default = {k: r.get(k) for k in ("mesh", "views", "noise_pct", "misregistration_pct", "delta", "tau", "lambda_surface",
-                                                     "seconds", "chamfer_l1", "f_score", "normal_consistency", "watertight")}
-                    default.update(setting="default", options={}, surface_constraints=r.get("surface_constraints"), from_study=True)
-                    rows.append(default)
-                    with open(log_path, "a") as fh:
-                        fh.write(json.dumps(default) + "\n")
-                    done.add((m, v, nz, g, "default"))
-                    break
+        if default is None and (m, v, nz, g) in studied:
+            default = studied[(m, v, nz, g)]
+            rows.append(default)
+            with open(log_path, "a") as fh:
+                fh.write(json.dumps(default) + "\n")
+            done.add((m, v, nz, g, "default"))
         for setting in (None, *SETTINGS):
             if (m, v, nz, g, setting or "default") in done:
                 continue
