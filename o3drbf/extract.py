@@ -198,15 +198,17 @@ def evaluate_grid(
         # crosses (or nearly crosses) the level by the current values, until
         # all such cells are exact.  Interpolated same-signed values cannot
         # cross, so the cells left out contain no surface.
+        # The first sweep tests every cell; later ones only the cells with a
+        # corner just evaluated (no other cell's test can change).
+        cells = _candidate_cells(vals - level, margin)
+        where = np.nonzero(_corners(cells, vals.shape) & ~exact)
         for _sweep in range(64):
-            cells = _candidate_cells(vals - level, margin)
-            need = _corners(cells, vals.shape) & ~exact
-            where = np.nonzero(need)
             if where[0].size == 0:
                 break
             vals[where] = func(_grid_points(origin, spacing, [w * stride for w in where]))
             exact[where] = True
             _tick(bar, where[0].size)
+            where = _corners_to_evaluate(vals, exact, where, level, margin)
     if bar is not None:
         bar.close()
     return vals, exact
@@ -226,6 +228,28 @@ def _candidate_cells(d, margin: float = 0.5):
         np.maximum(mx, x, out=mx)
         np.minimum(absmin, np.abs(x), out=absmin)
     return ((mn <= 0) & (mx >= 0)) | (absmin <= margin * (mx - mn))
+
+
+def _corners_to_evaluate(vals, exact, changed, level: float, margin: float):
+    """The not yet exact corners of the candidate cells (:func:`_candidate_cells`) among those with a corner in
+    ``changed`` (index arrays), as index arrays."""
+    ncell = tuple(n - 1 for n in vals.shape)
+    offsets = [(a, b, c) for a in (0, 1) for b in (0, 1) for c in (0, 1)]
+    p = np.stack(changed, axis=1)
+    touched = np.zeros(ncell, dtype=bool)  # boolean marks, not np.unique: a few ms per sweep, not seconds
+    for o in offsets:
+        c = p - o
+        c = c[((c >= 0) & (c < ncell)).all(axis=1)]
+        touched[tuple(c.T)] = True
+    cells = np.stack(np.nonzero(touched), axis=1)
+    d = np.stack([vals[tuple((cells + o).T)] for o in offsets], axis=1) - level  # (cells, 8 corners)
+    mn, mx, absmin = d.min(axis=1), d.max(axis=1), np.abs(d).min(axis=1)
+    cells = cells[((mn <= 0) & (mx >= 0)) | (absmin <= margin * (mx - mn))]
+    need = np.zeros(vals.shape, dtype=bool)
+    for o in offsets:
+        need[tuple((cells + o).T)] = True
+    need &= ~exact
+    return np.nonzero(need)
 
 
 def _corners(cells, shape):

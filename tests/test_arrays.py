@@ -7,7 +7,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from o3drbf.mesh.arrays import mesh_arrays, raycasting_scene, unique_edges
+from o3drbf.mesh.arrays import mesh_arrays, raycasting_scene, triangle_components, unique_edges
 
 TETRA_V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
 TETRA_F = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
@@ -92,3 +92,25 @@ def test_edges_of_a_tetrahedron_and_a_box():
     assert len(v) - len(edges) + len(f) == 2
     open_edges, _, open_counts = unique_edges(f[:-1])  # one triangle off: its 3 edges are now boundary
     assert len(open_edges) == 18 and (open_counts == 1).sum() == 3
+
+
+def test_triangle_components_are_open3ds_clusters():
+    """Pieces joined through shared edges, numbered as Open3D's cluster_connected_triangles numbers them."""
+    pieces = [o3d.geometry.TriangleMesh.create_torus().translate((3.0 * i, 0, 0)) for i in range(3)]
+    pieces.append(o3d.geometry.TriangleMesh.create_sphere(0.2).translate((0, 0, 4)))
+    mesh = pieces[0]
+    for p in pieces[1:]:
+        mesh += p
+    order = np.random.default_rng(0).permutation(len(mesh.triangles))  # pieces interleaved in the list
+    mesh.triangles = o3d.utility.Vector3iVector(np.asarray(mesh.triangles)[order])
+    n, labels = triangle_components(np.asarray(mesh.triangles))
+    ref, _, _ = mesh.cluster_connected_triangles()
+    assert n == 4
+    assert np.array_equal(labels, np.asarray(ref))
+
+
+def test_triangles_sharing_only_a_corner_are_two_pieces():
+    tris = np.array([[0, 1, 2], [0, 3, 4], [1, 2, 5]])  # the second touches the first at vertex 0 only
+    n, labels = triangle_components(tris)
+    assert n == 2
+    assert labels.tolist() == [0, 1, 0]

@@ -23,10 +23,9 @@ from typing import Any
 
 import numpy as np
 from scipy import sparse
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from o3drbf.mesh.arrays import mesh_arrays, raycasting_scene, unique_edges
+from o3drbf.mesh.arrays import mesh_arrays, raycasting_scene, triangle_components, unique_edges
 from o3drbf.mesh.intersections import self_intersecting_pairs
 from o3drbf.validation import as_points, check_number
 
@@ -528,12 +527,7 @@ def mesh_report(mesh: Any, self_intersections: bool = True) -> dict[str, Any]:
         n_self = int(self_intersecting_pairs(verts, tris).shape[0])
         watertight = watertight and n_self == 0
 
-    # Components: triangles and edges as nodes of one bipartite graph.
-    rows = np.repeat(np.arange(nf), 3)
-    graph = sparse.coo_matrix((np.ones(3 * nf), (rows, nf + tri_edges.ravel())), shape=(nf + ne, nf + ne))
-    _, labels = connected_components(graph, directed=False)
-    _, tri_comp = np.unique(labels[:nf], return_inverse=True)
-    n_comp = int(tri_comp.max()) + 1
+    n_comp, tri_comp = triangle_components(tris, tri_edges)
 
     # Consistent orientation: on a closed edge-manifold mesh, each directed
     # edge appears once.
@@ -595,18 +589,14 @@ def drop_specks(mesh, size: float):
     removed : int
         Pieces removed.
     """
-    import open3d as o3d
-
     size = check_number("size", size, low=0.0)
     if len(mesh.triangles) == 0 or size == 0:
         return mesh, 0
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        labels, _, _ = mesh.cluster_connected_triangles()
-    labels = np.asarray(labels)
-    n = int(labels.max()) + 1
+    tris = np.asarray(mesh.triangles)
+    n, labels = triangle_components(tris)
     if n < 2:
         return mesh, 0
-    corners = np.asarray(mesh.vertices)[np.asarray(mesh.triangles)]  # (F, 3, 3)
+    corners = np.asarray(mesh.vertices)[tris]  # (F, 3, 3)
     lo = np.full((n, 3), np.inf)
     hi = np.full((n, 3), -np.inf)
     np.minimum.at(lo, labels, corners.min(axis=1))
