@@ -106,8 +106,6 @@ AUTO_SIZES = {
     "cells_per_spacing": 2.5,  # marching-cubes cells per constraint spacing ...
     "min_resolution": 128,
     "max_resolution": 256,
-    "cells_per_spacing_clean": 4.0,  # ... on clean scans (their detail is real) ...
-    "max_resolution_clean": 384,  # ... up to this many cells (about 1.1 GB of grids)
 }
 
 
@@ -134,15 +132,12 @@ def auto_surface_count(n_points: int, clean: bool = False) -> int:
     return int(min(max(n_points // per, a["min_constraints"]), a["max_constraints"]))
 
 
-def auto_resolution(spacing_box: float, clean: bool = False) -> int:
-    """The marching-cubes resolution ``resolution="auto"`` picks for a constraint spacing (box units; the box is 2
-    wide): ``cells_per_spacing`` cells per spacing, or ``cells_per_spacing_clean`` up to ``max_resolution_clean``
-    on ``clean`` scans (noise below ``DENOISE_MIN_NOISE`` spacings)."""
+def auto_resolution(spacing_box: float) -> int:
+    """The marching-cubes resolution ``resolution="auto"`` picks for a constraint spacing (box units)."""
     a = AUTO_SIZES
     if not spacing_box > 0:
         return a["min_resolution"]
-    per, top = (a["cells_per_spacing_clean"], a["max_resolution_clean"]) if clean else (a["cells_per_spacing"], a["max_resolution"])
-    return int(min(max(round(2.0 * per / spacing_box), a["min_resolution"]), top))
+    return int(min(max(round(2.0 * a["cells_per_spacing"] / spacing_box), a["min_resolution"]), a["max_resolution"]))
 
 
 def extraction_memory(resolution: int) -> int:

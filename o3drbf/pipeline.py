@@ -136,10 +136,6 @@ class ConstraintSet:
         when they were not moved).
     denoised : int
         Surface constraints moved onto local quadric fits (0: none).
-    clean : bool
-        The noise was estimated and found below ``DENOISE_MIN_NOISE`` spacings
-        (at the default spacing): the constraints' detail is real, and
-        ``resolution="auto"`` meshes finer (:func:`o3drbf.options.auto_resolution`).
     """
 
     constraints: Constraints
@@ -153,7 +149,6 @@ class ConstraintSet:
     noise: float = float("nan")
     constraint_noise: float = float("nan")
     denoised: int = 0
-    clean: bool = False
 
 
 @dataclass
@@ -584,7 +579,7 @@ def build_constraints(data: PointSet, options: ConstraintOptions = ConstraintOpt
     box = norm.forward(pts)
     idx = surface_constraints(box, count=count, radius=options.surface_radius, seed=seed)
     surf = box[idx]
-    noise, constraint_noise, moved, clean = float("nan"), float("nan"), 0, False
+    noise, constraint_noise, moved = float("nan"), float("nan"), 0
     spacing = mean_spacing(surf) if len(surf) > 1 else float("nan")
     if options.denoise and len(surf) > 10 and len(box) > len(surf):
         from o3drbf.constraints.parameters import estimate_noise
@@ -594,7 +589,6 @@ def build_constraints(data: PointSet, options: ConstraintOptions = ConstraintOpt
         constraint_noise = noise
         # One decision at the default spacing: noisy points are denoised, clean ones get denser constraints.
         denoise = options.denoise is True or noise > DENOISE_MIN_NOISE * spacing
-        clean = not noise > DENOISE_MIN_NOISE * spacing
         if auto_count and not denoise and auto_surface_count(len(data), clean=True) > len(idx):
             count = auto_surface_count(len(data), clean=True)
             idx = surface_constraints(box, count=count, seed=seed)
@@ -641,7 +635,7 @@ def build_constraints(data: PointSet, options: ConstraintOptions = ConstraintOpt
     lo, hi = data.bounds
     pad = 0.05 * float((hi - lo).max())
     return ConstraintSet(constraints, norm, np.asarray(idx), spacing, seen, np.stack([lo - pad, hi + pad]), options.exterior_offset,
-                         bool(data.normals_estimated), noise, constraint_noise, moved, clean)
+                         bool(data.normals_estimated), noise, constraint_noise, moved)
 
 
 def choose_parameters(data: PointSet, cset: ConstraintSet, options: ParameterOptions = ParameterOptions(), *, seed: int = 0,
@@ -784,25 +778,12 @@ def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = F
         "exterior_offset": cset.exterior_offset,
         "counts": cset.constraints.counts(),
         "mean_spacing": cset.spacing,
-        "clean": cset.clean,
         "bounds": None if cset.bounds is None else cset.bounds.tolist(),
         "normals_estimated": cset.normals_estimated,
         "parameter_source": params.source,
     }
     log.info("solved %d constraints (%s) in %.2f s, relative residual %.1e", len(constraints), sol.method, sol.seconds, sol.residual)
     return surface, sol, robust
-
-
-def extraction_resolution(surface: ImplicitSurface, options: ExtractOptions = ExtractOptions()) -> int | None:
-    """Marching-cubes cells along the longest side that :func:`mesh_surface` uses: ``options.resolution``, or for
-    ``"auto"`` :func:`o3drbf.options.auto_resolution` of the surface's constraint spacing (finer on clean scans);
-    None when ``options.voxel_size`` sets the grid."""
-    if options.voxel_size is not None:
-        return None
-    if options.resolution != "auto":
-        return int(options.resolution)
-    meta = surface.metadata or {}
-    return auto_resolution(float(meta.get("mean_spacing", float("nan"))), clean=bool(meta.get("clean", False)))
 
 
 def mesh_surface(surface: ImplicitSurface, options: ExtractOptions = ExtractOptions(), *, progress: bool = False):
@@ -816,7 +797,9 @@ def mesh_surface(surface: ImplicitSurface, options: ExtractOptions = ExtractOpti
     from o3drbf.extract import extract_mesh
 
     options.validate()
-    resolution = extraction_resolution(surface, options)
+    resolution = options.resolution
+    if resolution == "auto":
+        resolution = auto_resolution(float(surface.metadata.get("mean_spacing", float("nan"))))
     try:
         return extract_mesh(surface, resolution=resolution, voxel_size=options.voxel_size, bounds=options.bounds, progress=progress)
     except RuntimeError as exc:
@@ -1016,7 +999,8 @@ def reconstruct(points, normals=None, *, cameras=None, point_camera=None, colors
         specks_removed=specks,
         vertices=None if mesh is None else len(mesh.vertices),
         triangles=None if mesh is None else len(mesh.triangles),
-        resolution=None if mesh is None else extraction_resolution(surface, opts.extract),
+        resolution=None if mesh is None or opts.extract.voxel_size is not None else (
+            auto_resolution(cset.spacing) if opts.extract.resolution == "auto" else int(opts.extract.resolution)),
         stages=stages.timings,
         confidence=None if confidence is None else {**confidence.summary(), "trim": opts.confidence.trim, "triangles_removed": trimmed},
     )

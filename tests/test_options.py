@@ -177,20 +177,16 @@ def test_automatic_sizes_follow_the_data():
     assert auto_surface_count(12_000) == 3000 and auto_surface_count(120_000) == 20_000 and auto_surface_count(10**7) == 30_000
     assert auto_surface_count(12_000, clean=True) == 4000 and auto_surface_count(120_000, clean=True) == 30_000
     assert auto_resolution(0.048) == 128 and auto_resolution(0.015) == 256 and auto_resolution(0.03) == 167
-    # Clean scans: 4 cells per spacing, up to 384 (6-view thin plate, no noise: Chamfer 0.00038 at 210 cells,
-    # 0.00023 at 384; Open3D Poisson depth 8: 0.00025).
-    assert auto_resolution(0.048, clean=True) == 167 and auto_resolution(0.03, clean=True) == 267
-    assert auto_resolution(0.015, clean=True) == 384
     # Clean points: one constraint per 3; noisy (denoised) ones: one per 6.
     from o3drbf.pipeline import build_constraints
     from o3drbf.pointset import PointSet
 
     p, n = Sphere(1.0).sample(48_000, seed=5)
     cset = build_constraints(PointSet.create(p, n))
-    assert len(cset.surface_index) == pytest.approx(16_000, rel=0.1) and not cset.denoised and cset.clean
+    assert len(cset.surface_index) == pytest.approx(16_000, rel=0.1) and not cset.denoised
     p, n = Sphere(1.0).sample(48_000, noise=0.01, seed=5)
     cset = build_constraints(PointSet.create(p, n))
-    assert len(cset.surface_index) == pytest.approx(8000, rel=0.1) and cset.denoised and not cset.clean
+    assert len(cset.surface_index) == pytest.approx(8000, rel=0.1) and cset.denoised
 
 
 def test_a_resolution_that_cannot_fit_is_refused_before_any_work(monkeypatch):

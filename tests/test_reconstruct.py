@@ -158,26 +158,3 @@ def test_repeated_points_are_merged_with_a_note():
     p, n = Sphere(1.0).sample(400, seed=2)
     r = o3drbf.reconstruct(np.vstack([p, p[:7]]), np.vstack([n, n[:7]]), surface_count=100, extract_mesh=False, outliers="none")
     assert r.report.duplicates_merged == 7 and r.report.points == 400 and r.report.input_points == 407
-
-
-def test_clean_scans_are_meshed_finer():
-    """resolution="auto": 4 grid cells per constraint spacing on clean points, 2.5 on noisy ones (the report says
-    which grid the mesh used: its edges are about as long as the grid's cells)."""
-    from o3drbf.options import auto_resolution
-
-    sphere = Sphere(1.0)
-    runs = {}
-    for noise in (0.0, 0.02):
-        p, n = sphere.sample(12_000, noise=noise, seed=2)
-        runs[noise] = o3drbf.reconstruct(p, n, surface_count=6000)
-    clean, noisy = runs[0.0], runs[0.02]
-    assert clean.surface.metadata["clean"] and not noisy.surface.metadata["clean"]
-    assert clean.report.resolution == auto_resolution(clean.report.mean_spacing_box, clean=True)
-    assert clean.report.resolution == pytest.approx(2 * 4.0 / clean.report.mean_spacing_box, abs=1)
-    assert noisy.report.resolution == auto_resolution(noisy.report.mean_spacing_box) == 128  # 2.5 per spacing: below the floor
-    assert clean.report.resolution > 1.2 * noisy.report.resolution
-    def median_edge(m):
-        v, t = np.asarray(m.vertices), np.asarray(m.triangles)
-        return np.median(np.linalg.norm(v[t[:, 0]] - v[t[:, 1]], axis=1))
-    ratio = median_edge(noisy.mesh) / median_edge(clean.mesh)
-    assert ratio == pytest.approx(clean.report.resolution / noisy.report.resolution, rel=0.15)
