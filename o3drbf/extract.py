@@ -17,7 +17,7 @@ import numpy as np
 from o3drbf.progress import progress_bar
 from o3drbf.validation import check_number
 
-__all__ = ["extract_mesh", "evaluate_grid", "grid_for", "mesh_evaluator", "GRID_EVALUATION_MIN", "MESH_EPS"]
+__all__ = ["extract_mesh", "evaluate_grid", "refine_on_edges", "grid_for", "mesh_evaluator", "GRID_EVALUATION_MIN", "MESH_EPS"]
 
 #: From this many centres on, a surface without its own evaluator is meshed with
 #: the grid (particle-mesh) sum of o3drbf.solvers.fast rather than the direct
@@ -316,6 +316,7 @@ def extract_mesh(
     normals: str = "exact",
     progress: bool = False,
     evaluator=None,
+    refine: bool = True,
 ):
     """Triangle mesh of the iso-surface f = ``level`` by marching cubes.
 
@@ -341,6 +342,11 @@ def extract_mesh(
         Vertex normals from grad f (exact) or from the grid's finite differences.
     progress : bool
         Progress bar.
+    refine : bool
+        Move each vertex along its grid edge onto f = ``level``
+        (:func:`refine_on_edges`; default) rather than leave it where the
+        linear interpolation of the corner values puts it.  Marching cubes'
+        topology is kept exactly.
     evaluator : callable, optional
         ``(box points, gradient) -> f [, grad f]``; default
         :func:`mesh_evaluator` (the grid sum from ``GRID_EVALUATION_MIN``
@@ -394,6 +400,8 @@ def extract_mesh(
     # f > 0 inside: skimage winds its triangles to face up the gradient (inward); flip them
     # so triangles face outward, like the vertex normals (positive signed volume).
     faces = np.ascontiguousarray(faces[:, ::-1])
+    if refine:
+        verts = refine_on_edges(func, verts / h, vals, origin, h, level) * h
     verts_box = verts + origin
     if normals == "exact":
         _, g = func(verts_box, gradient=True)
@@ -409,6 +417,83 @@ def extract_mesh(
     mesh.remove_degenerate_triangles()
     mesh.remove_unreferenced_vertices()
     return mesh
+
+
+#: Refined vertices stay this fraction of an edge away from its corners (0.01
+#: left slivers that Open3D's self-intersection test flags, on a ball three
+#: cells in radius).
+_REFINE_GAP = 0.1
+
+
+def refine_on_edges(func, verts, vals, origin, h: float, level: float = 0.0, steps: int = 3) -> np.ndarray:
+    """Marching-cubes vertices moved along their grid edges onto f = ``level``.
+
+    Marching cubes puts a vertex where the straight line between the two
+    corner values crosses the level; where f bends across a cell (a thin
+    wall, a tight curve) that point is off the surface by up to ``h^2 f'' /
+    (8 f')``, the same way everywhere, so thin parts come out thinner.  Each
+    vertex instead takes ``steps`` false-position steps (Illinois variant) on
+    its own edge, bracketed by the corner values (one evaluation of f per
+    vertex and step; three leave a ball 3.3 cells in radius within 1e-5
+    cells, where straight lines leave it 0.03 cells inside).
+    It never leaves its edge, nor comes closer to a corner than
+    ``_REFINE_GAP`` of the edge (unless marching cubes put it closer): the
+    triangles keep their cells and the mesh its topology.
+
+    Parameters
+    ----------
+    func : callable
+        ``(M, 3) box points -> (M,) f``.
+    verts : (V, 3) ndarray
+        Vertices in grid index units (as marching cubes returns them with
+        unit spacing): two coordinates whole, one between two whole numbers.
+    vals : ndarray
+        The grid values ``f - level`` that marching cubes used.
+    origin, h
+        The grid's first node and spacing (box units).
+    level : float
+
+    Returns
+    -------
+    (V, 3) ndarray
+        The vertices, in grid index units.
+    """
+    v = np.array(verts, dtype=float)
+    if not len(v):
+        return v
+    whole = np.rint(v)
+    rows = np.arange(len(v))
+    axis = np.argmax(np.abs(v - whole), axis=1)
+    a = whole.astype(np.int64)
+    a[rows, axis] = np.floor(v[rows, axis]).astype(np.int64)
+    b = a.copy()
+    b[rows, axis] += 1
+    inside = (b[rows, axis] < np.array(vals.shape)[axis])
+    a, b, axis, rows = a[inside], b[inside], axis[inside], rows[inside]
+    fa, fb = vals[tuple(a.T)], vals[tuple(b.T)]
+    ok = (fa < 0) != (fb < 0)  # a crossing edge (always, for marching cubes' vertices)
+    a, axis, rows, fa, fb = a[ok], axis[ok], rows[ok], fa[ok], fb[ok]
+    t = v[rows, axis] - a[np.arange(len(a)), axis]
+    ta, tb = np.zeros(len(t)), np.ones(len(t))
+    # Not nearer a corner than _REFINE_GAP of the edge (or than marching cubes put it): several vertices
+    # pulled next to one corner make slivers that Open3D's self-intersection test flags.
+    lo, hi = np.minimum(t, _REFINE_GAP), np.maximum(t, 1.0 - _REFINE_GAP)
+    kept_b = np.zeros(len(t), dtype=bool)
+    for _ in range(int(steps)):
+        p = a.astype(float)
+        p[np.arange(len(p)), axis] += t
+        ft = np.asarray(func(origin + p * h), dtype=float).reshape(-1) - level
+        same_as_a = (ft < 0) == (fa < 0)
+        # Illinois: the end kept twice has its value halved, so the bracket closes from both sides.
+        fb = np.where(same_as_a & kept_b, 0.5 * fb, fb)
+        fa = np.where(~same_as_a & ~kept_b, 0.5 * fa, fa)
+        kept_b = same_as_a
+        ta, fa = np.where(same_as_a, t, ta), np.where(same_as_a, ft, fa)
+        tb, fb = np.where(same_as_a, tb, t), np.where(same_as_a, fb, ft)
+        t = ta + (tb - ta) * fa / (fa - fb)
+        t = np.clip(t, lo, hi)
+    v[rows, axis] = a[np.arange(len(a)), axis] + t
+    return v
 
 
 #: Smallest |f| kept at a grid point, as a fraction of the typical change of f

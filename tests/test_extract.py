@@ -155,3 +155,38 @@ def test_grid_evaluator_mesh_matches_exact_evaluation_within_a_fraction_of_a_vox
     assert np.abs(n_fast - n_ref).max() < 1e-4, np.abs(n_fast - n_ref).max()
     # Below the threshold (and for surfaces with their own evaluator) nothing changes.
     assert mesh_evaluator(s, min_centres=10**6).kind == "table"
+
+
+class Ball:
+    """f = R^2 - |x|^2 in box coordinates: a ball whose f bends across each cell, so straight-line
+    interpolation between grid corners puts the vertices inside it (by about h^2 / (8 R))."""
+
+    def __init__(self, radius):
+        self.radius = radius
+        self.normalization = Normalization(center=np.zeros(3), scale=1.0)
+        self.metadata = {}
+        self.centres = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+
+    def evaluate_box(self, x, gradient=False, approximate=False):
+        x = np.asarray(x, float)
+        v = self.radius**2 - (x * x).sum(axis=1)
+        return (v, -2 * x) if gradient else v
+
+
+@pytest.mark.parametrize("refine", [True, False])
+def test_vertices_are_moved_onto_the_surface_along_their_edges(refine):
+    res = 24
+    h = 2.0 / res
+    ball = Ball(3.3 * h)  # 3.3 cells across its radius
+    mesh = extract_mesh(ball, resolution=res, bounds=[[-1, -1, -1], [1, 1, 1]], evaluator=ball.evaluate_box, refine=refine)
+    assert mesh.is_watertight()
+    err = np.linalg.norm(np.asarray(mesh.vertices), axis=1) - ball.radius
+    if refine:
+        assert np.median(np.abs(err)) < 0.001 * h  # on the sphere, to the false-position steps' accuracy ...
+        assert np.abs(err).max() < 0.05 * h  # ... or held a tenth of an edge off a corner
+    else:
+        assert err.mean() < -0.01 * h  # straight-line interpolation: inside the ball
+    # every vertex still on a grid edge: two of its coordinates are grid nodes
+    idx = (np.asarray(mesh.vertices) - (-1.0)) / h
+    on_node = np.abs(idx - np.rint(idx)) < 1e-5  # float32 vertices
+    assert (on_node.sum(axis=1) >= 2).all()
