@@ -227,6 +227,11 @@ def _candidate_cells(d, margin: float = 0.5):
         np.minimum(mn, x, out=mn)
         np.maximum(mx, x, out=mx)
         np.minimum(absmin, np.abs(x), out=absmin)
+    return _near_level(mn, mx, absmin, margin)
+
+
+def _near_level(mn, mx, absmin, margin: float):
+    """The cell test of :func:`_candidate_cells` from its corners' smallest, largest and smallest absolute values."""
     return ((mn <= 0) & (mx >= 0)) | (absmin <= margin * (mx - mn))
 
 
@@ -243,8 +248,7 @@ def _corners_to_evaluate(vals, exact, changed, level: float, margin: float):
         touched[tuple(c.T)] = True
     cells = np.stack(np.nonzero(touched), axis=1)
     d = np.stack([vals[tuple((cells + o).T)] for o in offsets], axis=1) - level  # (cells, 8 corners)
-    mn, mx, absmin = d.min(axis=1), d.max(axis=1), np.abs(d).min(axis=1)
-    cells = cells[((mn <= 0) & (mx >= 0)) | (absmin <= margin * (mx - mn))]
+    cells = cells[_near_level(d.min(axis=1), d.max(axis=1), np.abs(d).min(axis=1), margin)]
     need = np.zeros(vals.shape, dtype=bool)
     for o in offsets:
         need[tuple((cells + o).T)] = True
@@ -464,16 +468,17 @@ def refine_on_edges(func, verts, vals, origin, h: float, level: float = 0.0, ste
     whole = np.rint(v)
     rows = np.arange(len(v))
     axis = np.argmax(np.abs(v - whole), axis=1)
-    a = whole.astype(np.int64)
+    a = whole.astype(np.int64)  # each vertex's edge runs from corner a to a + 1 along its axis
     a[rows, axis] = np.floor(v[rows, axis]).astype(np.int64)
+    keep = a[rows, axis] + 1 < np.array(vals.shape)[axis]
+    a, axis, rows = a[keep], axis[keep], rows[keep]
     b = a.copy()
-    b[rows, axis] += 1
-    inside = (b[rows, axis] < np.array(vals.shape)[axis])
-    a, b, axis, rows = a[inside], b[inside], axis[inside], rows[inside]
+    b[np.arange(len(b)), axis] += 1
     fa, fb = vals[tuple(a.T)], vals[tuple(b.T)]
-    ok = (fa < 0) != (fb < 0)  # a crossing edge (always, for marching cubes' vertices)
-    a, axis, rows, fa, fb = a[ok], axis[ok], rows[ok], fa[ok], fb[ok]
-    t = v[rows, axis] - a[np.arange(len(a)), axis]
+    keep = (fa < 0) != (fb < 0)  # a crossing edge (always, for marching cubes' vertices)
+    a, axis, rows, fa, fb = a[keep], axis[keep], rows[keep], fa[keep], fb[keep]
+    start = a[np.arange(len(a)), axis]
+    t = v[rows, axis] - start
     ta, tb = np.zeros(len(t)), np.ones(len(t))
     # Not nearer a corner than _REFINE_GAP of the edge (or than marching cubes put it): several vertices
     # pulled next to one corner make slivers that Open3D's self-intersection test flags.
@@ -484,7 +489,8 @@ def refine_on_edges(func, verts, vals, origin, h: float, level: float = 0.0, ste
         p[np.arange(len(p)), axis] += t
         ft = np.asarray(func(origin + p * h), dtype=float).reshape(-1) - level
         same_as_a = (ft < 0) == (fa < 0)
-        # Illinois: the end kept twice has its value halved, so the bracket closes from both sides.
+        # Illinois: the end kept twice running has its value halved, so the bracket closes from both sides
+        # (marching cubes' own interpolation counts as a step that kept a).
         fb = np.where(same_as_a & kept_b, 0.5 * fb, fb)
         fa = np.where(~same_as_a & ~kept_b, 0.5 * fa, fa)
         kept_b = same_as_a
@@ -492,7 +498,7 @@ def refine_on_edges(func, verts, vals, origin, h: float, level: float = 0.0, ste
         tb, fb = np.where(same_as_a, tb, t), np.where(same_as_a, fb, ft)
         t = ta + (tb - ta) * fa / (fa - fb)
         t = np.clip(t, lo, hi)
-    v[rows, axis] = a[np.arange(len(a)), axis] + t
+    v[rows, axis] = start + t
     return v
 
 
