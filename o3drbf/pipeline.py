@@ -35,7 +35,7 @@ from o3drbf.pointset import PointSet
 from o3drbf.prep.normalize import Normalization, check_spans_volume
 from o3drbf.prep.sampling import mean_spacing
 from o3drbf.rbf.kernels import Kernel, MultiOrder, kernel_class, make_kernel
-from o3drbf.solvers import FAST_EVALUATION_MIN, Solution, solve
+from o3drbf.solvers import FAST_EVALUATION_MIN, Refitter, Solution, solve
 from o3drbf.surface import ImplicitSurface
 from o3drbf.validation import per_point
 
@@ -724,12 +724,17 @@ def fit(constraints: Constraints, kernel: Kernel, normalization: Normalization, 
     ImplicitSurface, Solution
     """
     sol = solve(kernel, constraints.points, constraints.values, constraints.smoothing, method=solver, progress=progress, **solve_options)
-    surf = ImplicitSurface(kernel, constraints.points, sol.weights, sol.poly, normalization)
-    if sol.method == "fast" and len(constraints) >= FAST_EVALUATION_MIN:
+    return surface_of(sol, constraints.points, kernel, normalization), sol
+
+
+def surface_of(sol: Solution, centres, kernel: Kernel, normalization: Normalization) -> ImplicitSurface:
+    """The implicit surface of a solution at its centres (box units); fast-solved large ones evaluate by fast sums."""
+    surf = ImplicitSurface(kernel, centres, sol.weights, sol.poly, normalization)
+    if sol.method == "fast" and len(centres) >= FAST_EVALUATION_MIN:
         from o3drbf.solvers.fast import make_evaluator
 
-        surf.evaluator = make_evaluator(kernel, constraints.points, sol.weights)
-    return surf, sol
+        surf.evaluator = make_evaluator(kernel, centres, sol.weights)
+    return surf
 
 
 def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = FitOptions(), *, progress: bool = False):
@@ -753,7 +758,15 @@ def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = F
     options.validate()
     c = cset.constraints
     constraints = Constraints(c.points, c.values, params.smoothing, c.kind)
-    surface, sol = fit(constraints, params.kernel, cset.normalization, solver=options.solver, progress=progress)
+    # One factorization for the first fit and every robust refit (Woodbury updates of the dense one).
+    session = Refitter(params.kernel, constraints.points, constraints.values, constraints.smoothing, method=options.solver,
+                       progress=progress)
+
+    def refit(smoothing=None):
+        keep, solution = session.solve(smoothing)
+        return surface_of(solution, constraints.points[keep], params.kernel, cset.normalization), solution
+
+    surface, sol = refit()
     robust = None
     if options.robust:
         from o3drbf.constraints.robust import robust_reweight
@@ -764,7 +777,7 @@ def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = F
         scale = max(params.noise, 0.5 * cset.spacing) if np.isfinite(cset.spacing) else params.noise
         surface, sol, rep = robust_reweight(
             lambda c: fit(c, params.kernel, cset.normalization, solver=options.solver, progress=progress),
-            constraints, scale, first=(surface, sol),
+            constraints, scale, first=(surface, sol), refit=refit,
         )
         robust = {"rounds": int(rep.rounds), "downweighted": int(rep.downweighted), "dropped": int(rep.dropped),
                   "scale": float(rep.scale), "seconds": float(rep.seconds), "constraints": rep.constraints}

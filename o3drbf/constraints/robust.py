@@ -148,6 +148,7 @@ def robust_reweight(
     tukey_c: float = 4.685,
     huber_rounds: int | None = None,
     first=None,
+    refit: Callable[[np.ndarray], tuple] | None = None,
 ) -> tuple:
     """Fit, then refit with the surface constraints' lambda scaled by robust weights.
 
@@ -177,6 +178,12 @@ def robust_reweight(
         ``max(1, rounds // 2)``.
     first : (surface, solution), optional
         An existing fit of ``constraints`` (saves the first fit).
+    refit : callable, optional
+        ``refit(smoothing) -> (surface, solution)``: the fit of ``constraints``
+        with the smoothing ``smoothing`` (one value per constraint, ``inf``
+        for a dropped one), used for the refits instead of ``fit`` on the
+        kept constraints; e.g. :class:`o3drbf.solvers.Refitter`, which
+        updates one dense factorization instead of solving afresh.
 
     Returns
     -------
@@ -252,7 +259,7 @@ def robust_reweight(
         weights[surf] = np.where(drop, 0.0, u)
         kept = np.flatnonzero(keep)
         current = Constraints(constraints.points[keep], constraints.values[keep], lam[keep], constraints.kind[keep])
-        surface, solution = fit(current)
+        surface, solution = fit(current) if refit is None else refit(np.where(keep, lam, np.inf))
         done += 1
         d = geometric_residuals(surface, pts)
     report = RobustReport(

@@ -8,13 +8,109 @@ import scipy.linalg as sla
 
 from o3drbf.rbf.sums import kernel_matrix
 
-__all__ = ["solve_dense", "DENSE_MAX"]
+__all__ = ["solve_dense", "DenseFactor", "DENSE_MAX"]
 
 #: Largest dense solve o3drbf runs.  The OpenBLAS shipped with numpy/scipy
 #: wheels segfaults in a two-thread Cholesky of 16,000+ unknowns on this
 #: class of machine (exit 139, no message), and the fast solver is faster
 #: well before that (10k: 13 s vs 36 s).  Above it, method="dense" is refused.
 DENSE_MAX = 12_000
+
+
+class DenseFactor:
+    """``Phi + diag(lambda_0)`` factored once (Cholesky), solved for any smoothing close to ``lambda_0``.
+
+    A robust refit changes the smoothing of a few constraints (down-weighted
+    or dropped).  With ``E`` the columns of those k constraints and
+    ``D = diag(lambda_k - lambda_0,k)``, the Woodbury identity
+
+        (A + E D E^T)^{-1} = A^{-1} - A^{-1} E (D^{-1} + E^T A^{-1} E)^{-1} E^T A^{-1}
+
+    solves the new system with k extra back-substitutions and a k x k solve
+    instead of a new O(N^3) factorization.  ``lambda = inf`` leaves a
+    constraint out (``D^{-1} = 0``: its weight is exactly zero and the rest is
+    the system without it).
+
+    Parameters
+    ----------
+    kernel : Kernel
+        Positive definite (multi-order, Gaussian).
+    centres : (N, 3) ndarray
+    lam : (N,) ndarray
+        The smoothing factored, ``lambda_0 >= 0``.
+    q : (N, M) ndarray
+        Polynomial basis at the centres.
+
+    Raises
+    ------
+    numpy.linalg.LinAlgError
+        The matrix is not numerically positive definite.
+    """
+
+    def __init__(self, kernel, centres, lam, q):
+        n = len(centres)
+        a = kernel_matrix(kernel, centres)
+        a[np.diag_indices(n)] += lam
+        self.factor = sla.cho_factor(a, lower=True, overwrite_a=True, check_finite=False)
+        self.lam0 = np.array(lam, dtype=float)
+        self.q = q
+
+    def solve(self, y, lam=None):
+        """Weights and polynomial for targets ``y`` and smoothing ``lam`` (default ``lambda_0``).
+
+        Parameters
+        ----------
+        y : (N,) ndarray
+        lam : (N,) ndarray, optional
+            May differ from ``lambda_0`` anywhere (cost grows with the number
+            of changed constraints) and be ``inf`` where a constraint is left out.
+
+        Returns
+        -------
+        w : (N,) ndarray
+            Zero where ``lam`` is infinite.
+        p : (M,) ndarray
+        changed : int
+            Constraints whose smoothing differs from ``lambda_0``.
+        """
+        q = self.q
+        n, m = q.shape
+        x = sla.cho_solve(self.factor, np.column_stack([y, q]), check_finite=False)
+        changed = np.zeros(0, dtype=int) if lam is None else np.flatnonzero(np.asarray(lam) != self.lam0)
+        if len(changed):
+            k = len(changed)
+            e = np.zeros((n, k))
+            e[changed, np.arange(k)] = 1.0
+            z = sla.cho_solve(self.factor, e, check_finite=False)
+            d = np.asarray(lam, dtype=float)[changed] - self.lam0[changed]
+            inner = z[changed]
+            inner[np.diag_indices(k)] += np.where(np.isinf(d), 0.0, 1.0 / np.where(np.isinf(d), 1.0, d))
+            x = x - z @ np.linalg.solve(inner, x[changed])
+            out = np.isinf(np.asarray(lam, dtype=float))
+            x[out] = 0.0
+        u, v = x[:, 0], x[:, 1:]
+        if m:
+            p = np.linalg.solve(q.T @ v, q.T @ u)
+            w = u - v @ p
+        else:
+            p, w = np.zeros(0), u
+        return w, p, len(changed)
+
+    def residual(self, y, lam, w, p) -> float:
+        """Relative residual of ``(w, p)`` (all N weights) in the system with smoothing ``lam`` (``inf``: left out),
+        ``|| [Phi w + lambda w + Q p - y ; Q^T w] || / ||y||`` over the kept constraints.
+
+        ``Phi w`` is ``L (L^T w) - lambda_0 w`` with the kept Cholesky factor ``L``
+        (two triangular products, O(N^2) without evaluating the kernel).
+        """
+        c, _ = self.factor
+        lam = np.asarray(lam, dtype=float)
+        keep = np.isfinite(lam)
+        w = np.where(keep, w, 0.0)
+        a0w = sla.blas.dtrmv(c, sla.blas.dtrmv(c, w, lower=1, trans=1), lower=1)
+        r1 = (a0w + (np.where(keep, lam, 0.0) - self.lam0) * w + self.q @ p - y)[keep]
+        r2 = self.q.T @ w
+        return float(np.sqrt(r1 @ r1 + r2 @ r2) / max(float(np.linalg.norm(np.asarray(y)[keep])), np.finfo(float).tiny))
 
 
 def solve_dense(kernel, centres, y, lam, q):
@@ -40,23 +136,11 @@ def solve_dense(kernel, centres, y, lam, q):
     """
     n, m = q.shape
     if kernel.positive_definite:
-        a = kernel_matrix(kernel, centres)
-        a[np.diag_indices(n)] += lam
         try:
-            factor = sla.cho_factor(a, lower=True, overwrite_a=True, check_finite=False)
-        except np.linalg.LinAlgError:
-            factor = None
-        if factor is not None:
-            x = sla.cho_solve(factor, np.column_stack([y, q]), check_finite=False)
-            u, v = x[:, 0], x[:, 1:]
-            if m:
-                s = q.T @ v
-                p = np.linalg.solve(s, q.T @ u)
-                w = u - v @ p
-            else:
-                p, w = np.zeros(0), u
+            w, p, _ = DenseFactor(kernel, centres, lam, q).solve(y)
             return w, p, {"factorization": "cholesky"}
-        del a
+        except np.linalg.LinAlgError:
+            pass
     # Symmetric indefinite saddle-point system (thin-plate, or Cholesky failed).
     big = np.zeros((n + m, n + m), order="F")
     big[:n, :n] = kernel_matrix(kernel, centres)

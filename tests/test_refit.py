@@ -1,0 +1,117 @@
+"""Refitter: one dense factorization updated by the Woodbury identity, against fresh dense solves."""
+
+import numpy as np
+import pytest
+
+from o3drbf.constraints.robust import robust_reweight
+from o3drbf.pipeline import fit, surface_of
+from o3drbf.prep.normalize import Normalization
+from o3drbf.rbf.kernels import Gaussian, MultiOrder, ThinPlate
+from o3drbf.rbf.sums import kernel_matrix, polynomial_basis
+from o3drbf.solvers import Refitter, solve
+
+from test_robust import KERNEL, radial_error, sphere_constraints
+
+
+def problem(n=300, seed=0):
+    rng = np.random.default_rng(seed)
+    d = rng.standard_normal((n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    x = d * np.where(np.arange(n) < n - n // 10, 0.7, 0.8)[:, None]
+    y = np.where(np.arange(n) < n - n // 10, 0.0, -1.0)
+    lam = np.where(y == 0, 1e-3, 2.0)
+    return x, y, lam
+
+
+def reference(kernel, x, y, lam):
+    """numpy.linalg.solve of the full saddle-point matrix of the kept constraints (finite lambda)."""
+    keep = np.isfinite(lam)
+    x, y, lam = x[keep], y[keep], lam[keep]
+    n = len(x)
+    q = polynomial_basis(x, kernel.polynomial_degree)
+    m = q.shape[1]
+    a = np.zeros((n + m, n + m))
+    a[:n, :n] = kernel_matrix(kernel, x, compiled=False) + np.diag(lam)
+    a[:n, n:] = q
+    a[n:, :n] = q.T
+    s = np.linalg.solve(a, np.r_[y, np.zeros(m)])
+    return s[:n], s[n:]
+
+
+@pytest.mark.parametrize("kernel", [MultiOrder(10, 0.01), Gaussian(0.3)], ids=repr)
+def test_woodbury_update_equals_a_fresh_solve(kernel):
+    x, y, lam0 = problem()
+    session = Refitter(kernel, x, y, lam0, method="dense")
+    keep, first = session.solve()
+    assert keep.all() and "update" not in first.info
+    w_ref, p_ref = reference(kernel, x, y, lam0)
+    np.testing.assert_allclose(first.weights, w_ref, rtol=1e-7, atol=1e-7 * np.abs(w_ref).max())
+    lam = lam0.copy()
+    lam[[3, 50, 51, 120]] *= [10.0, 1e3, 1e6, 2.5]  # down-weighted
+    lam[[7, 200]] = np.inf  # dropped
+    keep, sol = session.solve(lam)
+    assert sol.info.get("update") == "woodbury" and sol.info["changed"] == 6
+    assert keep.sum() == len(x) - 2 and not keep[7] and not keep[200]
+    w_ref, p_ref = reference(kernel, x, y, lam)
+    assert len(sol.weights) == len(w_ref)
+    np.testing.assert_allclose(sol.weights, w_ref, rtol=1e-6, atol=1e-7 * np.abs(w_ref).max())
+    np.testing.assert_allclose(sol.poly, p_ref, rtol=1e-6, atol=1e-9)
+    assert sol.residual < 1e-8
+    # its residual is that of the kept system, as a fresh solve measures it
+    fresh = solve(kernel, x[keep], y[keep], lam[keep], method="dense")
+    assert sol.residual == pytest.approx(fresh.residual, abs=1e-9)
+
+
+def test_many_changes_solve_afresh_and_agree():
+    kernel = MultiOrder(10, 0.01)
+    x, y, lam0 = problem()
+    session = Refitter(kernel, x, y, lam0, method="dense", max_changed=5)
+    session.solve()
+    lam = lam0 * 3.0  # every constraint changed: beyond max_changed
+    keep, sol = session.solve(lam)
+    assert "update" not in sol.info and keep.all()
+    w_ref, _ = reference(kernel, x, y, lam)
+    np.testing.assert_allclose(sol.weights, w_ref, rtol=1e-6, atol=1e-7 * np.abs(w_ref).max())
+
+
+def test_non_dense_methods_and_indefinite_kernels_solve_afresh():
+    x, y, lam0 = problem(n=200)
+    lam = lam0.copy()
+    lam[5] = np.inf
+    for kernel, method in ((ThinPlate(), "dense"), (MultiOrder(10, 0.01), "iterative")):
+        session = Refitter(kernel, x, y, lam0, method=method)
+        session.solve()
+        keep, sol = session.solve(lam)
+        assert "update" not in sol.info and not keep[5]
+        w_ref, _ = reference(kernel, x, y, lam)
+        np.testing.assert_allclose(sol.weights, w_ref, rtol=1e-5, atol=1e-6 * np.abs(w_ref).max())
+
+
+def test_bad_smoothing_is_refused():
+    x, y, lam0 = problem(n=100)
+    session = Refitter(MultiOrder(10, 0.01), x, y, lam0, method="dense")
+    for bad in (lam0[:-1], np.where(np.arange(100) == 3, np.nan, lam0), -lam0):
+        with pytest.raises(ValueError, match="smoothing"):
+            session.solve(bad)
+
+
+def test_robust_refits_by_update_equal_refits_by_fresh_fits():
+    """The robust loop on a sphere with 3 % gross outliers: the Woodbury refits give the fresh refits' surface."""
+    dirty, pts, k = sphere_constraints(0.03, noise=0.005, seed=4)
+    norm = Normalization.identity()
+    session = Refitter(KERNEL, dirty.points, dirty.values, dirty.smoothing, method="dense")
+    updates = []
+
+    def refit(smoothing=None):
+        keep, sol = session.solve(smoothing)
+        updates.append(sol.info.get("update"))
+        return surface_of(sol, dirty.points[keep], KERNEL, norm), sol
+
+    fresh = robust_reweight(lambda c: fit(c, KERNEL, norm, solver="dense"), dirty, noise_scale=0.005)
+    updated = robust_reweight(lambda c: fit(c, KERNEL, norm, solver="dense"), dirty, noise_scale=0.005, first=refit(),
+                              refit=refit)
+    assert updated[2].rounds == fresh[2].rounds >= 1 and updates[1:] == ["woodbury"] * updated[2].rounds
+    np.testing.assert_array_equal(updated[2].weights, fresh[2].weights)
+    g = np.random.default_rng(3).uniform(-1, 1, (400, 3))
+    assert np.abs(updated[0].evaluate_box(g) - fresh[0].evaluate_box(g)).max() < 1e-7
+    assert radial_error(updated[0], pts) == pytest.approx(radial_error(fresh[0], pts), rel=1e-6)
