@@ -429,7 +429,7 @@ def extract_mesh(
 _REFINE_GAP = 0.1
 
 
-def refine_on_edges(func, verts, vals, origin, h: float, level: float = 0.0, steps: int = 3) -> np.ndarray:
+def refine_on_edges(func, verts, vals, origin, h: float, level: float = 0.0, steps: int = 3, first_node=None) -> np.ndarray:
     """Marching-cubes vertices moved along their grid edges onto f = ``level``.
 
     Marching cubes puts a vertex where the straight line between the two
@@ -456,6 +456,11 @@ def refine_on_edges(func, verts, vals, origin, h: float, level: float = 0.0, ste
     origin, h
         The grid's first node and spacing (box units).
     level : float
+    steps : int
+    first_node : (3,) int array_like, optional
+        Index coordinates of ``vals[0, 0, 0]`` when ``verts`` and ``origin``
+        refer to a larger lattice (a tile of :func:`o3drbf.tiles.extract.extract_tiled`:
+        positions then do not depend on where the tile starts); default 0.
 
     Returns
     -------
@@ -470,11 +475,13 @@ def refine_on_edges(func, verts, vals, origin, h: float, level: float = 0.0, ste
     axis = np.argmax(np.abs(v - whole), axis=1)
     a = whole.astype(np.int64)  # each vertex's edge runs from corner a to a + 1 along its axis
     a[rows, axis] = np.floor(v[rows, axis]).astype(np.int64)
-    keep = a[rows, axis] + 1 < np.array(vals.shape)[axis]
-    a, axis, rows = a[keep], axis[keep], rows[keep]
-    b = a.copy()
+    base = np.zeros(3, dtype=np.int64) if first_node is None else np.asarray(first_node, dtype=np.int64).reshape(3)
+    local = a - base
+    keep = local[rows, axis] + 1 < np.array(vals.shape)[axis]
+    a, local, axis, rows = a[keep], local[keep], axis[keep], rows[keep]
+    b = local.copy()
     b[np.arange(len(b)), axis] += 1
-    fa, fb = vals[tuple(a.T)], vals[tuple(b.T)]
+    fa, fb = vals[tuple(local.T)], vals[tuple(b.T)]
     keep = (fa < 0) != (fb < 0)  # a crossing edge (always, for marching cubes' vertices)
     a, axis, rows, fa, fb = a[keep], axis[keep], rows[keep], fa[keep], fb[keep]
     start = a[np.arange(len(a)), axis]

@@ -16,7 +16,9 @@
 
 Values that come within ``1e-3`` of a typical edge step of the level are
 moved off it keeping their sign (one global epsilon), as
-:func:`o3drbf.extract.extract_mesh` does; faces are wound outward like there.
+:func:`o3drbf.extract.extract_mesh` does; faces are wound outward like there,
+and vertices are moved along their edges onto the level set like there
+(:func:`o3drbf.extract.refine_on_edges`, in global lattice coordinates).
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ import time
 
 import numpy as np
 
-from o3drbf.extract import extraction_box, grid_for
+from o3drbf.extract import extraction_box, grid_for, refine_on_edges
 from o3drbf.tiles.cluster import run_tasks, tile_client, worker_summary
 from o3drbf.validation import check_number
 
@@ -96,8 +98,9 @@ def coarse_task(t: int, surface=None, lattice: dict | None = None, level: float 
 
 
 def fine_task(t: int, surface=None, lattice: dict | None = None, coarse_values: np.ndarray | None = None, band: np.ndarray | None = None,
-              eps: float = 0.0, level: float = 0.0, closed: bool = True) -> dict | None:
-    """Marching cubes of tile ``t``'s own fine cells (computed with a one-cell halo).
+              eps: float = 0.0, level: float = 0.0, closed: bool = True, refine: bool = True) -> dict | None:
+    """Marching cubes of tile ``t``'s own fine cells (computed with a one-cell halo); ``refine``: vertices moved
+    onto f = ``level`` along their lattice edges (:func:`o3drbf.extract.refine_on_edges`).
 
     Returns
     -------
@@ -186,6 +189,9 @@ def fine_task(t: int, surface=None, lattice: dict | None = None, coarse_values: 
     if not ((a < 0) != (b < 0)).all():
         raise RuntimeError("tiled extraction: a marching-cubes vertex is not on a sign-changing lattice edge (a bug)")
     verts = node + (a / (a - b))[:, None] * step
+    if refine:  # onto f = level along each edge, in global lattice coordinates (the same in every tile)
+        verts = refine_on_edges(lambda x: surface.evaluate_box(x, approximate=True), verts, vals, lattice["origin"], lattice["h"],
+                                level, first_node=start)
     box_verts = lattice["origin"] + verts * lattice["h"]
     _, g = surface.evaluate_box(box_verts, gradient=True, approximate=True)
     glen = np.linalg.norm(g, axis=1, keepdims=True)
@@ -205,6 +211,7 @@ def extract_tiled(
     workers: int = 2,
     progress: bool = False,
     stats: dict | None = None,
+    refine: bool = True,
 ):
     """Triangle mesh of the tiled surface's level set, meshed tile by tile and welded.
 
@@ -228,6 +235,9 @@ def extract_tiled(
         Filled with counts and timings (``evaluated``, ``coarse_nodes``, seconds) and
         ``workers``: per worker, tasks, summed task seconds and peak memory
         (:func:`o3drbf.tiles.cluster.worker_summary`).
+    refine : bool
+        Move every vertex along its lattice edge onto f = ``level`` (three
+        false-position steps, as :func:`o3drbf.extract.extract_mesh` does by default).
 
     Returns
     -------
@@ -275,7 +285,7 @@ def extract_tiled(
         eps = CORNER_GAP * float(np.median(steps)) / lat["stride"]
         t1 = time.perf_counter()
         pieces = run_tasks(c, fine_task, count, {"surface": surface, "lattice": lat, "coarse_values": cv, "band": band,
-                                                 "eps": eps, "level": level, "closed": closed}, progress=progress, desc="meshing tiles",
+                                                 "eps": eps, "level": level, "closed": closed, "refine": refine}, progress=progress, desc="meshing tiles",
                            records=records)
         t_fine = time.perf_counter() - t1
     evaluated = int(sum(p["evaluated"] for p in pieces if p is not None))
