@@ -93,14 +93,15 @@ DEFAULTS: dict = {
 #: piece, genus 0, 61 s.  One constraint per 6 points rather than 12
 #: (robustness study, 6-view scans of 33k points, no noise): double torus
 #: Chamfer 0.0008 -> 0.0004, cube 0.0009 -> 0.0006, 17 s either way.
-#: Clean scans (noise below ``DENOISE_MIN_NOISE`` spacings, not denoised)
-#: get one constraint per 3 points: their detail is real (6-view scans, no
+#: One per 3 points rather than 6, clean scans first (6-view scans, no
 #: noise: double torus 0.00043 -> 0.00022, thin plate 0.00074 -> 0.00038,
 #: bracket 0.00059 -> 0.00037; Open3D Poisson depth 8: 0.00025, 0.00025,
-#: 0.0008; 1.5-3x the time).
+#: 0.0008), then noisy ones too (denoised constraints; the settings sweep's
+#: "2x constraints" on the 18 noisy cells without outliers: Chamfer 0.72-1.03x,
+#: median 0.92x; 3-view cube, 2 % outliers, noise 0.5 %: 0.0069 -> 0.0050;
+#: about 1.5-2.5x the time, with the robust refits as Woodbury updates).
 AUTO_SIZES = {
     "points_per_constraint": 3,  # surface constraints = points / 3 ...
-    "points_per_constraint_clean": 3,  # ... or points / 3 on clean scans ...
     "min_constraints": 3000,  # ... at least this many (or every point) ...
     "max_constraints": 30000,  # ... at most this many
     "cells_per_spacing": 2.5,  # marching-cubes cells per constraint spacing ...
@@ -124,12 +125,10 @@ DENOISE_MIN_NOISE = 0.05
 SPECK_SPACINGS = 2.0
 
 
-def auto_surface_count(n_points: int, clean: bool = False) -> int:
-    """The surface-constraint count ``surface_count="auto"`` picks for ``n_points`` points (``clean``: noise below
-    ``DENOISE_MIN_NOISE`` spacings)."""
+def auto_surface_count(n_points: int) -> int:
+    """The surface-constraint count ``surface_count="auto"`` picks for ``n_points`` points."""
     a = AUTO_SIZES
-    per = a["points_per_constraint_clean" if clean else "points_per_constraint"]
-    return int(min(max(n_points // per, a["min_constraints"]), a["max_constraints"]))
+    return int(min(max(n_points // a["points_per_constraint"], a["min_constraints"]), a["max_constraints"]))
 
 
 def auto_resolution(spacing_box: float) -> int:
@@ -304,9 +303,8 @@ class ConstraintOptions:
     ----------
     surface_count : int, "auto" or None
         Poisson-disc subsample to about this many surface constraints (the
-        paper: 2,000-3,000); "auto": :func:`auto_surface_count` (points / 6,
-        or points / 3 when the points' noise is below ``DENOISE_MIN_NOISE``
-        spacings, between 3,000 and 30,000); None keeps every point (or uses ``surface_radius``).
+        paper: 2,000-3,000); "auto": :func:`auto_surface_count` (points / 3,
+        between 3,000 and 30,000); None keeps every point (or uses ``surface_radius``).
     surface_radius : float or None
         Poisson-disc radius (box units) instead of a count.
     exterior_ratio : float

@@ -68,7 +68,7 @@ def add_option_arguments(parser: argparse.ArgumentParser) -> None:
                    help="iteratively reweighted fit: down-weight surface constraints far from the surface (default: on)")
     g = parser.add_argument_group("constraints")
     g.add_argument("--surface-count", type=count_or_auto, default=d["surface_count"], metavar="auto|N",
-                   help="Poisson-disc subsample to about N surface constraints; auto: points / 6, between 3,000 and 30,000 (default %(default)s)")
+                   help="Poisson-disc subsample to about N surface constraints; auto: points / 3, between 3,000 and 30,000 (default %(default)s)")
     g.add_argument("--surface-radius", type=float, default=d["surface_radius"], help="Poisson-disc radius (box units) instead of --surface-count")
     g.add_argument("--all-points", action="store_true", help="use every point as a surface constraint (no subsampling)")
     g.add_argument("--exterior-ratio", type=float, default=d["exterior_ratio"], help="exterior constraints per surface constraint (default %(default)s)")
