@@ -100,10 +100,18 @@ DEFAULTS: dict = {
 #: "2x constraints" on the 18 noisy cells without outliers: Chamfer 0.72-1.03x,
 #: median 0.92x; 3-view cube, 2 % outliers, noise 0.5 %: 0.0069 -> 0.0050;
 #: about 1.5-2.5x the time, with the robust refits as Woodbury updates).
+#: Noisy scans keep that rate only up to 10,000 constraints (then points / 6,
+#: as before): noise makes robust refits, and above the dense solve's range
+#: (``o3drbf.solvers.DENSE_AUTO_MAX``) each refit is a whole fast solve
+#: (6-view torus stack, 33k points, noise 1 %: 5.6k constraints Chamfer
+#: 0.00506; 10.0k, dense, no refit needed: 0.00474; 11.3k, fast, 4 refits:
+#: 0.00465 at 4-6x the fit time).
 AUTO_SIZES = {
     "points_per_constraint": 3,  # surface constraints = points / 3 ...
     "min_constraints": 3000,  # ... at least this many (or every point) ...
     "max_constraints": 30000,  # ... at most this many
+    "noisy_full_rate_max": 10000,  # noisy (denoised) scans: points / 3 up to this many, ...
+    "noisy_points_per_constraint": 6,  # ... else points / 6 (at least the count above)
     "cells_per_spacing": 2.5,  # marching-cubes cells per constraint spacing ...
     "min_resolution": 128,
     "max_resolution": 256,
@@ -125,10 +133,13 @@ DENOISE_MIN_NOISE = 0.05
 SPECK_SPACINGS = 2.0
 
 
-def auto_surface_count(n_points: int) -> int:
-    """The surface-constraint count ``surface_count="auto"`` picks for ``n_points`` points."""
+def auto_surface_count(n_points: int, noisy: bool = False) -> int:
+    """The surface-constraint count ``surface_count="auto"`` picks for ``n_points`` points (``noisy``: to be denoised)."""
     a = AUTO_SIZES
-    return int(min(max(n_points // a["points_per_constraint"], a["min_constraints"]), a["max_constraints"]))
+    count = n_points // a["points_per_constraint"]
+    if noisy:
+        count = min(count, max(a["noisy_full_rate_max"], n_points // a["noisy_points_per_constraint"]))
+    return int(min(max(count, a["min_constraints"]), a["max_constraints"]))
 
 
 def auto_resolution(spacing_box: float) -> int:
@@ -304,7 +315,7 @@ class ConstraintOptions:
     surface_count : int, "auto" or None
         Poisson-disc subsample to about this many surface constraints (the
         paper: 2,000-3,000); "auto": :func:`auto_surface_count` (points / 3,
-        between 3,000 and 30,000); None keeps every point (or uses ``surface_radius``).
+        between 3,000 and 30,000; noisy scans: points / 3 up to 10,000, else points / 6); None keeps every point (or uses ``surface_radius``).
     surface_radius : float or None
         Poisson-disc radius (box units) instead of a count.
     exterior_ratio : float

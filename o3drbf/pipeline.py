@@ -28,7 +28,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from o3drbf.constraints.core import EXTERIOR, SPHERE, SURFACE, Constraints, bounding_sphere, exterior_from_normals, surface_constraints
-from o3drbf.options import (DEFAULTS, DENOISE_MIN_NOISE, PAPER_VALUES, SPECK_SPACINGS, auto_resolution, auto_surface_count,
+from o3drbf.options import (AUTO_SIZES, DEFAULTS, DENOISE_MIN_NOISE, PAPER_VALUES, SPECK_SPACINGS, auto_resolution, auto_surface_count,
                             ConfidenceOptions, ConstraintOptions, ExtractOptions, FitOptions, Options, OutlierOptions, ParameterOptions)
 from o3drbf.mesh.metrics import drop_specks
 from o3drbf.pointset import PointSet
@@ -571,7 +571,8 @@ def build_constraints(data: PointSet, options: ConstraintOptions = ConstraintOpt
     count = None if options.surface_radius is not None else options.surface_count
     if count is None and options.surface_radius is None:
         log.info("surface_count=None: every point is a surface constraint")
-    if count == "auto":
+    auto_count = count == "auto"
+    if auto_count:
         count = auto_surface_count(len(data))
     pts = data.points
     norm = Normalization.from_points(pts)
@@ -587,6 +588,12 @@ def build_constraints(data: PointSet, options: ConstraintOptions = ConstraintOpt
         noise = estimate_noise(box, seed=seed)
         constraint_noise = noise
         denoise = options.denoise is True or noise > DENOISE_MIN_NOISE * spacing
+        if denoise and auto_count and auto_surface_count(len(data), noisy=True) < len(idx):
+            idx = surface_constraints(box, count=auto_surface_count(len(data), noisy=True), seed=seed)
+            surf = box[idx]
+            spacing = mean_spacing(surf)
+            log.info("noisy points: %d surface constraints (points / 3 up to %d, else points / %d)", len(idx),
+                     AUTO_SIZES["noisy_full_rate_max"], AUTO_SIZES["noisy_points_per_constraint"])
         if denoise:
             k = neighbourhood_size(len(box), len(surf))
             moved_data, offset, gain = project_to_local_surface(pts, norm.inverse(surf), k=k, tree=data.kdtree, noise=noise / norm.scale)

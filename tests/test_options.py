@@ -176,8 +176,10 @@ def test_automatic_sizes_follow_the_data():
 
     assert auto_surface_count(6_000) == 3000 and auto_surface_count(12_000) == 4000 and auto_surface_count(120_000) == 30_000
     assert auto_surface_count(10**7) == 30_000
+    # noisy scans: points / 3 up to 10,000, then points / 6
+    assert [auto_surface_count(n, noisy=True) for n in (24_000, 45_000, 90_000, 10**7)] == [8000, 10_000, 15_000, 30_000]
     assert auto_resolution(0.048) == 128 and auto_resolution(0.015) == 256 and auto_resolution(0.03) == 167
-    # One constraint per 3 points, clean (kept as they are) or noisy (denoised).
+    # One constraint per 3 points when clean (kept as they are); noisy (denoised): at most 10,000 here.
     from o3drbf.pipeline import build_constraints
     from o3drbf.pointset import PointSet
 
@@ -186,7 +188,7 @@ def test_automatic_sizes_follow_the_data():
     assert len(cset.surface_index) == pytest.approx(16_000, rel=0.1) and not cset.denoised
     p, n = Sphere(1.0).sample(48_000, noise=0.01, seed=5)
     cset = build_constraints(PointSet.create(p, n))
-    assert len(cset.surface_index) == pytest.approx(16_000, rel=0.1) and cset.denoised
+    assert len(cset.surface_index) == pytest.approx(10_000, rel=0.1) and cset.denoised
 
 
 def test_a_resolution_that_cannot_fit_is_refused_before_any_work(monkeypatch):

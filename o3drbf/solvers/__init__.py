@@ -33,7 +33,7 @@ from o3drbf.solvers.iterative import solve_gmres
 from o3drbf.validation import as_points, check_choice, check_number, per_point
 
 __all__ = ["Solution", "solve", "available_memory", "dense_memory", "ConvergenceWarning", "METHODS",
-           "DENSE_MAX", "DENSE_AUTO_MAX", "FAST_EVALUATION_MIN", "choose_method", "Refitter"]
+           "DENSE_MAX", "DENSE_AUTO_MAX", "FAST_EVALUATION_MIN", "choose_method", "Refitter", "solve_fast"]
 
 #: Solver methods. "fast" (grid products + preconditioned Krylov) is in o3drbf.solvers.fast.
 METHODS = ("auto", "dense", "iterative", "fast")
@@ -148,18 +148,7 @@ def solve(
     need = dense_memory(n + m)
     method = resolve_method(method, n, m, limit)
     if method == "fast":
-        from o3drbf.solvers import fast
-
-        sol = fast.solve(kernel, centres, y, lam, rtol=1e-6 if rtol is None else rtol,
-                         max_iterations=min(max_iterations, 200), progress=progress, backend=backend)
-        split = sol.info["split"]
-        log.info(
-            "solver: fast products (%s) + two-level preconditioned FGMRES, %d constraints: %d iterations, "
-            "residual %.1e, %.1f s",
-            split.get("mode") or split.get("split"), n, sol.iterations, sol.residual, time.perf_counter() - t0,
-        )
-        sol.seconds = time.perf_counter() - t0
-        return sol
+        return solve_fast(kernel, centres, y, lam, rtol, max_iterations, progress, backend)
     if method == "dense":
         w, p, info = solve_dense(kernel, centres, y, lam, q)
         iterations = 0
@@ -175,6 +164,32 @@ def solve(
             stacklevel=2,
         )
     return sol
+
+
+def solve_fast(kernel: Kernel, centres, y, lam, rtol: float | None = None, max_iterations: int = 1000, progress: bool = False,
+               backend: str = "auto", operator=None, x0=None) -> Solution:
+    """The fast method of :func:`solve` (validated inputs): :func:`o3drbf.solvers.fast.solve` with ``rtol``
+    1e-6 by default and at most 200 iterations, logged; ``operator`` (a prebuilt product) and ``x0`` (a start)
+    are passed on."""
+    from o3drbf.solvers import fast
+
+    t0 = time.perf_counter()
+    sol = fast.solve(kernel, centres, y, lam, rtol=1e-6 if rtol is None else rtol, max_iterations=min(max_iterations, 200),
+                     progress=progress, backend=backend, operator=operator, x0=x0)
+    split = sol.info["split"]
+    log.info(
+        "solver: fast products (%s) + two-level preconditioned FGMRES, %d constraints: %d iterations, "
+        "residual %.1e, %.1f s%s",
+        split.get("mode") or split.get("split"), len(centres), sol.iterations, sol.residual, time.perf_counter() - t0,
+        "" if x0 is None else " (from the previous solution)",
+    )
+    sol.seconds = time.perf_counter() - t0
+    return sol
+
+
+#: A constraint :class:`Refitter` leaves out of a fast solve keeps its centre
+#: with this many times the largest finite smoothing.
+DROPPED_SMOOTHING = 1e6
 
 
 #: A dense solve whose relative residual exceeds this warns (and a Woodbury
@@ -209,9 +224,13 @@ class Refitter:
     than ``max_changed`` constraints is solved by the Woodbury identity
     (:class:`o3drbf.solvers.dense.DenseFactor`): a robust refit that
     down-weights 6 of 4,700 constraints costs milliseconds, not a new
-    factorization.  Otherwise (fast or iterative methods, many changes, an
-    update whose residual exceeds ``DENSE_RESIDUAL_WARN``) it is a fresh
-    :func:`solve` of the constraints kept.
+    factorization.  When it is fast, the products are built once for all
+    the centres and every refit starts FGMRES from the previous solution; a
+    left-out constraint keeps its centre with the smoothing
+    ``DROPPED_SMOOTHING`` times the largest finite one (its weight comes out
+    ~1e-6 of its neighbours' and is then removed).  Otherwise (the iterative
+    method, many changes, an update whose residual exceeds
+    ``DENSE_RESIDUAL_WARN``) it is a fresh :func:`solve` of the constraints kept.
 
     Parameters
     ----------
@@ -243,6 +262,8 @@ class Refitter:
         q = polynomial_basis(self.centres, kernel.polynomial_degree)
         self.q = q
         self.factor = None
+        self.operator = None  # the fast method's products, built at its first solve
+        self.previous = None  # the fast method's last [w; p]
         limit = int(0.8 * available_memory()) if options.get("memory_limit") is None else int(options["memory_limit"])
         self.method = method
         if n >= q.shape[1] + 1 and kernel.positive_definite:
@@ -286,7 +307,26 @@ class Refitter:
                     info.update(update="woodbury", changed=changed)
                 return keep, Solution(w, p, "dense", residual, time.perf_counter() - t0, 0, info)
             log.info("Woodbury update of %d constraints: residual %.1e; solving afresh", changed, residual)
+        if self.method == "fast" and self.kernel.name in ("multiorder", "gaussian"):
+            return keep, self.solve_fast(lam, keep)
         method = "dense" if self.method == "dense-unfactored" else self.method
         return keep, solve(self.kernel, self.centres[keep], self.values[keep], lam[keep], method=method, **self.options)
+
+    def solve_fast(self, lam, keep) -> Solution:
+        """A fast solve on the products of all the centres, from the previous solution (see the class)."""
+        from o3drbf.solvers import fast
+
+        o = self.options
+        if self.operator is None:
+            self.operator = fast.fast_operator(self.kernel, self.centres, eps=fast.product_tolerance(o.get("rtol") or 1e-6),
+                                               backend=o.get("backend", "auto"))
+        finite = lam[keep]
+        big = DROPPED_SMOOTHING * max(float(finite.max()) if finite.size else 1.0, 1e-12)
+        sol = solve_fast(self.kernel, self.centres, self.values, np.where(keep, lam, big), o.get("rtol"), o.get("max_iterations", 1000),
+                         o.get("progress", False), o.get("backend", "auto"), operator=self.operator, x0=self.previous)
+        self.previous = np.concatenate([sol.weights, sol.poly])
+        if keep.all():
+            return sol
+        return Solution(sol.weights[keep], sol.poly, sol.method, sol.residual, sol.seconds, sol.iterations, dict(sol.info, left_out=int((~keep).sum())))
 
 

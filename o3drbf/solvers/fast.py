@@ -125,7 +125,7 @@ from o3drbf.solvers.base import ConvergenceWarning, Solution, available_memory
 from o3drbf.rbf.sums import kernel_matrix, kernel_sum, polynomial_basis
 
 __all__ = ["FastSum", "TwoLevel", "solve", "make_evaluator", "fast_memory", "default_workers", "DEFAULT_EPS",
-           "GridSum", "fast_operator", "grid_bytes", "outside_centres", "GRID_BUDGET"]
+           "GridSum", "fast_operator", "grid_bytes", "outside_centres", "GRID_BUDGET", "product_tolerance"]
 
 #: Default relative tolerance of fast sums (evaluation).
 DEFAULT_EPS = 1e-6
@@ -210,6 +210,11 @@ def default_workers() -> int:
 
 def _clip_eps(eps: float) -> float:
     return float(min(max(eps, 1e-13), 1e-2))
+
+
+def product_tolerance(rtol: float) -> float:
+    """The fast products' tolerance :func:`solve` uses for a relative residual ``rtol``."""
+    return _clip_eps(float(rtol) / 10.0)
 
 
 # --------------------------------------------------------------------------------------
@@ -1405,20 +1410,25 @@ def _cg(a, diag, b, steps):
 # --------------------------------------------------------------------------------------
 # FGMRES
 # --------------------------------------------------------------------------------------
-def _fgmres(matvec, b, prec, rtol, max_iterations, restart, true_matvec, bar=None, final=True):
+def _fgmres(matvec, b, prec, rtol, max_iterations, restart, true_matvec, bar=None, final=True, x0=None):
     """Flexible GMRES (right preconditioned), restarted from the true residual.
 
     ``matvec(x, rel)`` may be inexact with relative accuracy ``rel`` (relaxed
     as the residual falls); ``true_matvec`` is the accurate product used at
-    every restart.  Returns x, iterations, true relative residual, history.
+    every restart; ``x0`` a starting guess (default 0).  Returns x,
+    iterations, true relative residual, history.
     """
     n = len(b)
     bn = float(np.linalg.norm(b))
     if bn == 0:
         return np.zeros(n), 0, 0.0, []
-    x = np.zeros(n)
-    r = b.copy()
-    beta = bn
+    if x0 is None:
+        x = np.zeros(n)
+        r = b.copy()
+    else:
+        x = np.array(x0, dtype=float)
+        r = b - true_matvec(x)
+    beta = float(np.linalg.norm(r))
     its = 0
     history = []
     while True:
@@ -1515,6 +1525,7 @@ def solve(
     relax: bool = True,
     operator: FastSum | None = None,
     backend: str = "auto",
+    x0=None,
 ) -> Solution:
     """Solve ``[Phi + diag(lam), Q; Q^T, 0] [w; p] = [y; 0]`` with fast products.
 
@@ -1545,6 +1556,9 @@ def solve(
         interface, e.g. a dense stand-in for testing the preconditioner).
     backend : {"auto", "grid", "fmm"}
         The product when ``operator`` is None (:func:`fast_operator`).
+    x0 : (N + M,) array, optional
+        Starting guess ``[w; p]`` (e.g. the solution of a nearby system: a
+        robust refit starts from the fit before it).
 
     Returns
     -------
@@ -1568,7 +1582,7 @@ def solve(
     y = np.asarray(y, dtype=float)
     lam = np.broadcast_to(np.asarray(lam, dtype=float), (n,)).copy()
     rtol = float(rtol)
-    eps = _clip_eps(rtol / 10.0 if eps is None else eps)
+    eps = product_tolerance(rtol) if eps is None else _clip_eps(eps)
     limit = int(0.8 * available_memory()) if memory_limit is None else int(memory_limit)
     need = fast_memory(n, restart, eps)
     if need > limit:
@@ -1605,7 +1619,7 @@ def solve(
     t_solve = time.perf_counter()
     try:
         x, its, res, history = _fgmres(product, b, prec, rtol, max_iterations, restart,
-                                       lambda v: product(v, 1.0), bar)
+                                       lambda v: product(v, 1.0), bar, x0=x0)
     finally:
         if bar is not None:
             bar.close()
