@@ -7,10 +7,11 @@ from o3drbf.constraints.robust import robust_reweight
 from o3drbf.pipeline import fit, surface_of
 from o3drbf.prep.normalize import Normalization
 from o3drbf.rbf.kernels import Gaussian, MultiOrder, ThinPlate
-from o3drbf.rbf.sums import kernel_matrix, polynomial_basis
+from o3drbf.rbf.sums import polynomial_basis
 from o3drbf.solvers import Refitter, solve
 
 from test_robust import KERNEL, radial_error, sphere_constraints
+from test_solve import reference as full_reference
 
 
 def problem(n=300, seed=0):
@@ -26,16 +27,7 @@ def problem(n=300, seed=0):
 def reference(kernel, x, y, lam):
     """numpy.linalg.solve of the full saddle-point matrix of the kept constraints (finite lambda)."""
     keep = np.isfinite(lam)
-    x, y, lam = x[keep], y[keep], lam[keep]
-    n = len(x)
-    q = polynomial_basis(x, kernel.polynomial_degree)
-    m = q.shape[1]
-    a = np.zeros((n + m, n + m))
-    a[:n, :n] = kernel_matrix(kernel, x, compiled=False) + np.diag(lam)
-    a[:n, n:] = q
-    a[n:, :n] = q.T
-    s = np.linalg.solve(a, np.r_[y, np.zeros(m)])
-    return s[:n], s[n:]
+    return full_reference(kernel, x[keep], y[keep], lam[keep])
 
 
 @pytest.mark.parametrize("kernel", [MultiOrder(10, 0.01), Gaussian(0.3)], ids=repr)
