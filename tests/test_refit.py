@@ -132,3 +132,13 @@ def test_fast_refits_start_from_the_previous_solution_and_agree_with_a_dense_sol
     f_fast = kernel_sum(kernel, x[keep], sol.weights, g) + q @ sol.poly
     f_dense = kernel_sum(kernel, x[keep], dense.weights, g) + q @ dense.poly
     assert np.abs(f_fast - f_dense).max() < 1e-3 * np.abs(f_dense).max()
+
+
+def test_memory_limits_are_checked_before_anything_is_built():
+    x, y, lam0 = problem(n=200)
+    with pytest.raises(MemoryError, match="dense solve of 200 constraints needs about"):
+        Refitter(MultiOrder(10, 0.01), x, y, lam0, method="dense", memory_limit=1000)
+    session = Refitter(MultiOrder(10, 0.01), x, y, lam0, method="fast", memory_limit=10**6)
+    with pytest.raises(MemoryError, match="fast solve of 200 constraints needs about"):
+        session.solve()
+    assert session.operator is None

@@ -318,6 +318,11 @@ class Refitter:
 
         o = self.options
         if self.operator is None:
+            limit = int(0.8 * available_memory()) if o.get("memory_limit") is None else int(o["memory_limit"])
+            need = fast.fast_memory(len(self.centres))
+            if need > limit:  # as fast.solve checks, before the products are built
+                raise MemoryError(f"a fast solve of {len(self.centres)} constraints needs about {gigabytes(need)} but the limit is "
+                                  f"{gigabytes(limit)}; subsample the constraints (surface_count) or raise memory_limit")
             self.operator = fast.fast_operator(self.kernel, self.centres, eps=fast.product_tolerance(o.get("rtol") or 1e-6),
                                                backend=o.get("backend", "auto"))
         finite = lam[keep]
