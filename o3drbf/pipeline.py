@@ -592,8 +592,8 @@ def build_constraints(data: PointSet, options: ConstraintOptions = ConstraintOpt
             idx = surface_constraints(box, count=auto_surface_count(len(data), noisy=True), seed=seed)
             surf = box[idx]
             spacing = mean_spacing(surf)
-            log.info("noisy points: %d surface constraints (points / 3 up to %d, else points / %d)", len(idx),
-                     AUTO_SIZES["noisy_full_rate_max"], AUTO_SIZES["noisy_points_per_constraint"])
+            log.info("noisy points: %d surface constraints (points / %d up to %d, else points / %d)", len(idx),
+                     AUTO_SIZES["points_per_constraint"], AUTO_SIZES["noisy_full_rate_max"], AUTO_SIZES["noisy_points_per_constraint"])
         if denoise:
             k = neighbourhood_size(len(box), len(surf))
             moved_data, offset, gain = project_to_local_surface(pts, norm.inverse(surf), k=k, tree=data.kdtree, noise=noise / norm.scale)
