@@ -27,7 +27,8 @@ import numpy as np
 
 from o3drbf.rbf.kernels import Kernel
 from o3drbf.rbf.sums import polynomial_basis
-from o3drbf.solvers.base import ConvergenceWarning, Solution, available_memory, dense_memory, gigabytes, relative_residual
+from o3drbf.solvers.base import (ConvergenceWarning, Solution, available_memory, dense_memory, gigabytes, memory_limit_or_default,
+                                 relative_residual)
 from o3drbf.solvers.dense import DENSE_MAX, DenseFactor, solve_dense
 from o3drbf.solvers.iterative import solve_gmres
 from o3drbf.validation import as_points, check_choice, check_number, per_point
@@ -61,7 +62,7 @@ def choose_method(n: int, memory_limit: int | None = None) -> tuple[str, str]:
     Dense only when it is both the faster choice (``n <= DENSE_AUTO_MAX``)
     and fits in memory; the fast solver otherwise.
     """
-    limit = int(0.8 * available_memory()) if memory_limit is None else int(memory_limit)
+    limit = memory_limit_or_default(memory_limit)
     need = dense_memory(n)
     if n > DENSE_AUTO_MAX:
         return "fast", f"{n} constraints > {DENSE_AUTO_MAX}: the fast solver is faster there"
@@ -126,15 +127,8 @@ def solve(
         names the limit and the alternatives.
     """
     t0 = time.perf_counter()
-    centres = as_points(centres, name="centres", min_count=1)
+    centres, y, lam = system_inputs(centres, values, smoothing, method)
     n = len(centres)
-    y = np.asarray(values, dtype=float)
-    if y.shape != (n,):
-        raise ValueError(f"values must have shape ({n},), got {y.shape}")
-    if not np.isfinite(y).all():
-        raise ValueError("values contain NaN or infinity")
-    lam = per_point("smoothing", smoothing, n, low=0.0)
-    check_choice("method", method, METHODS)
     check_choice("backend", backend, ("auto", "grid", "fmm"))
     if rtol is not None:
         rtol = check_number("rtol", rtol, low=0.0, high=1.0, low_open=True)
@@ -144,7 +138,7 @@ def solve(
         raise ValueError(f"{kernel.name} basis needs at least {m + 1} constraints, got {n}")
     if m > 1 and np.linalg.matrix_rank(q) < m:
         raise ValueError("constraint points are coplanar: the linear polynomial of the thin-plate basis is not determined")
-    limit = int(0.8 * available_memory()) if memory_limit is None else int(memory_limit)
+    limit = memory_limit_or_default(memory_limit)
     need = dense_memory(n + m)
     method = resolve_method(method, n, m, limit)
     if method == "fast":
@@ -164,6 +158,20 @@ def solve(
             stacklevel=2,
         )
     return sol
+
+
+def system_inputs(centres, values, smoothing, method: str = "auto") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Checked ``(centres (N, 3), values (N,), smoothing (N,))`` of a solve, and a known ``method``."""
+    centres = as_points(centres, name="centres", min_count=1)
+    n = len(centres)
+    y = np.asarray(values, dtype=float)
+    if y.shape != (n,):
+        raise ValueError(f"values must have shape ({n},), got {y.shape}")
+    if not np.isfinite(y).all():
+        raise ValueError("values contain NaN or infinity")
+    lam = per_point("smoothing", smoothing, n, low=0.0)
+    check_choice("method", method, METHODS)
+    return centres, y, lam
 
 
 def solve_fast(kernel: Kernel, centres, y, lam, rtol: float | None = None, max_iterations: int = 1000, progress: bool = False,
@@ -250,13 +258,8 @@ class Refitter:
     def __init__(self, kernel: Kernel, centres, values, smoothing=0.0, method: str = "auto", max_changed: int | None = None,
                  **options):
         self.kernel = kernel
-        self.centres = as_points(centres, name="centres", min_count=1)
+        self.centres, self.values, self.smoothing = system_inputs(centres, values, smoothing, method)
         n = len(self.centres)
-        self.values = np.asarray(values, dtype=float)
-        if self.values.shape != (n,):
-            raise ValueError(f"values must have shape ({n},), got {self.values.shape}")
-        self.smoothing = per_point("smoothing", smoothing, n, low=0.0)
-        check_choice("method", method, METHODS)
         self.options = options
         self.max_changed = max(1, n // 8) if max_changed is None else int(max_changed)
         q = polynomial_basis(self.centres, kernel.polynomial_degree)
@@ -264,7 +267,7 @@ class Refitter:
         self.factor = None
         self.operator = None  # the fast method's products, built at its first solve
         self.previous = None  # the fast method's last [w; p]
-        limit = int(0.8 * available_memory()) if options.get("memory_limit") is None else int(options["memory_limit"])
+        limit = memory_limit_or_default(options.get("memory_limit"))
         self.method = method
         if n >= q.shape[1] + 1 and kernel.positive_definite:
             self.method = resolve_method(method, n, q.shape[1], limit)
@@ -318,11 +321,7 @@ class Refitter:
 
         o = self.options
         if self.operator is None:
-            limit = int(0.8 * available_memory()) if o.get("memory_limit") is None else int(o["memory_limit"])
-            need = fast.fast_memory(len(self.centres))
-            if need > limit:  # as fast.solve checks, before the products are built
-                raise MemoryError(f"a fast solve of {len(self.centres)} constraints needs about {gigabytes(need)} but the limit is "
-                                  f"{gigabytes(limit)}; subsample the constraints (surface_count) or raise memory_limit")
+            fast.check_memory(len(self.centres), memory_limit=o.get("memory_limit"))  # before the products are built
             self.operator = fast.fast_operator(self.kernel, self.centres, eps=fast.product_tolerance(o.get("rtol") or 1e-6),
                                                backend=o.get("backend", "auto"))
         finite = lam[keep]

@@ -10,7 +10,8 @@ import numpy as np
 
 from o3drbf.rbf.sums import kernel_sum
 
-__all__ = ["Solution", "ConvergenceWarning", "available_memory", "dense_memory", "relative_residual", "gigabytes"]
+__all__ = ["Solution", "ConvergenceWarning", "available_memory", "memory_limit_or_default", "dense_memory", "relative_residual",
+           "gigabytes"]
 
 
 class ConvergenceWarning(UserWarning):
@@ -81,6 +82,11 @@ def available_memory() -> int:
         except (OSError, ValueError):
             continue
     return avail
+
+
+def memory_limit_or_default(memory_limit: int | None = None) -> int:
+    """Bytes a solve may use: ``memory_limit``, or 80 % of :func:`available_memory`."""
+    return int(0.8 * available_memory()) if memory_limit is None else int(memory_limit)
 
 
 def dense_memory(n: int) -> int:

@@ -121,11 +121,11 @@ from scipy.spatial import cKDTree
 
 from o3drbf.progress import progress_bar
 from o3drbf.rbf.kernels import Gaussian, Kernel, MultiOrder
-from o3drbf.solvers.base import ConvergenceWarning, Solution, available_memory
+from o3drbf.solvers.base import ConvergenceWarning, Solution, memory_limit_or_default
 from o3drbf.rbf.sums import kernel_matrix, kernel_sum, polynomial_basis
 
 __all__ = ["FastSum", "TwoLevel", "solve", "make_evaluator", "fast_memory", "default_workers", "DEFAULT_EPS",
-           "GridSum", "fast_operator", "grid_bytes", "outside_centres", "GRID_BUDGET", "product_tolerance"]
+           "GridSum", "fast_operator", "grid_bytes", "outside_centres", "GRID_BUDGET", "product_tolerance", "check_memory"]
 
 #: Default relative tolerance of fast sums (evaluation).
 DEFAULT_EPS = 1e-6
@@ -1507,6 +1507,18 @@ def fast_memory(n: int, restart: int = 50, eps: float = 1e-6) -> int:
     return int(max(fmm, grid) + krylov + precond)
 
 
+def check_memory(n: int, restart: int = 50, eps: float = 1e-6, memory_limit: int | None = None) -> None:
+    """Raise MemoryError, naming the need and the limit, when a fast solve of ``n`` constraints would not fit
+    in ``memory_limit`` bytes (default 80 % of the available memory)."""
+    limit = memory_limit_or_default(memory_limit)
+    need = fast_memory(n, restart, eps)
+    if need > limit:
+        raise MemoryError(
+            f"a fast solve of {n} constraints needs about {need / 2**30:.1f} GB but the limit is "
+            f"{limit / 2**30:.1f} GB; subsample the constraints (surface_count) or raise memory_limit"
+        )
+
+
 # --------------------------------------------------------------------------------------
 # solve
 # --------------------------------------------------------------------------------------
@@ -1583,13 +1595,7 @@ def solve(
     lam = np.broadcast_to(np.asarray(lam, dtype=float), (n,)).copy()
     rtol = float(rtol)
     eps = product_tolerance(rtol) if eps is None else _clip_eps(eps)
-    limit = int(0.8 * available_memory()) if memory_limit is None else int(memory_limit)
-    need = fast_memory(n, restart, eps)
-    if need > limit:
-        raise MemoryError(
-            f"a fast solve of {n} constraints needs about {need / 2**30:.1f} GB but the limit is "
-            f"{limit / 2**30:.1f} GB; subsample the constraints (surface_count) or raise memory_limit"
-        )
+    check_memory(n, restart, eps, memory_limit)
     q = polynomial_basis(centres, kernel.polynomial_degree)
     m = q.shape[1]
     t_setup = time.perf_counter()
