@@ -125,3 +125,46 @@ def test_bad_input(fits):
     no_surface = Constraints.of_kind(np.eye(3), EXTERIOR, 1.0)
     with pytest.raises(ValueError, match="no SURFACE"):
         robust_reweight(fitter, no_surface, 0.01)
+
+
+def dense_sphere(n, n_out, seed=0):
+    """n samples of the sphere and n_out gross outliers 20 % of R outside it (last surface rows), lambda 0.014 phi(0)."""
+    pts, _ = Sphere(R).sample(n, noise=0.002, seed=seed)
+    rng = np.random.default_rng(seed + 1)
+    d = rng.normal(size=(n_out, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return Constraints.concat(
+        Constraints.of_kind(np.vstack([pts, 1.2 * R * d]), SURFACE, 1e-4),
+        Constraints.of_kind(pts[::10] * (1 + 0.05 / R), EXTERIOR, 2.0),
+        Constraints.of_kind(bounding_sphere(pts, 64), SPHERE, 2.0),
+    )
+
+
+def test_residuals_measured_again_only_near_the_changes():
+    """The local re-measurement gives the weights and surface of measuring every residual each round."""
+    dirty = dense_sphere(3000, 2)
+    first = fitter(dirty)
+    full = robust_reweight(fitter, dirty, noise_scale=0.002, first=first, local_radius=None)
+    local = robust_reweight(fitter, dirty, noise_scale=0.002, first=first)
+    n = int((dirty.kind == SURFACE).sum())
+    assert full[2].rounds >= 2 and (full[2].weights[n - 2 : n] == 0).all() and full[2].dropped == 2
+    np.testing.assert_array_equal(local[2].weights, full[2].weights)
+    g = np.random.default_rng(5).uniform(-1, 1, (300, 3))
+    np.testing.assert_allclose(local[0].evaluate_box(g), full[0].evaluate_box(g), rtol=0, atol=1e-12)
+    measured = [h["measured"] for h in local[2].history]
+    # the residuals of the final fit, as measuring all of them gives (within the check's tolerance)
+    assert np.abs(local[2].residuals - full[2].residuals).max() <= 0.01 * 3.0 * full[2].scale
+    # the first fit measures all; at least one refit only the neighbourhood and the check sample
+    assert measured[0] == n and min(measured[1:]) < n // 4, measured
+    assert all(h["measured"] == n for h in full[2].history)
+
+
+def test_local_residuals_fall_back_when_the_check_sees_a_move():
+    """Radius 0 re-measures only the changed constraints; their neighbours moved, the sample check sees it."""
+    dirty = dense_sphere(3000, 2)
+    first = fitter(dirty)
+    full = robust_reweight(fitter, dirty, noise_scale=0.002, first=first, local_radius=None)
+    tight = robust_reweight(fitter, dirty, noise_scale=0.002, first=first, local_radius=0.0)
+    n = int((dirty.kind == SURFACE).sum())
+    np.testing.assert_array_equal(tight[2].weights, full[2].weights)
+    assert any(h["measured"] > n for h in tight[2].history[1:]), [h["measured"] for h in tight[2].history]

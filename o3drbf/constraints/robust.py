@@ -29,6 +29,15 @@ evaluation).  The loop stops when nothing exceeds ``k s``, when the set of
 constraints beyond ``k s`` and the dropped set are the same as in the
 previous round of the same kind, or after ``rounds`` refits.  Exterior,
 interior and sphere constraints keep their lambda.
+
+A refit changes lambda of a few constraints, and the surface moves only
+near them (measured on noisy range scans: residual changes above 1 % of
+``k s`` lie within 5 constraint spacings of a changed constraint).  So after
+a refit the residuals are measured again only within ``local_radius``
+spacings of the constraints whose lambda changed; a seeded sample of the
+others is measured too (half of it the nearest beyond that radius, where
+an unmeasured change would be largest), and if any of those moved by more than
+``LOCAL_CHECK_TOLERANCE * k s`` every residual is measured again.
 """
 
 from __future__ import annotations
@@ -42,7 +51,8 @@ import numpy as np
 from o3drbf.constraints.core import SURFACE, Constraints
 from o3drbf.validation import check_number
 
-__all__ = ["RobustReport", "robust_reweight", "huber_weights", "tukey_weights", "geometric_residuals", "MAD_FACTOR"]
+__all__ = ["RobustReport", "robust_reweight", "huber_weights", "tukey_weights", "geometric_residuals", "MAD_FACTOR",
+           "LOCAL_RADIUS_SPACINGS"]
 
 #: 1 / Phi^-1(3/4): the MAD of a Gaussian times this is its standard deviation.
 MAD_FACTOR = 1.4826
@@ -50,6 +60,12 @@ MAD_FACTOR = 1.4826
 MIN_WEIGHT = 1e-6
 #: Lambda used as the base of a surface constraint given lambda = 0 (which no weight could change).
 ZERO_SMOOTHING = 1e-4
+#: After a refit, residuals are measured again within this many constraint spacings of a changed constraint.
+LOCAL_RADIUS_SPACINGS = 10.0
+#: Constraints outside that neighbourhood measured as a check (a seeded sample) ...
+LOCAL_CHECK_SAMPLES = 256
+#: ... whose residuals may have moved by at most this fraction of ``huber_k * s`` (else all are measured again).
+LOCAL_CHECK_TOLERANCE = 0.01
 
 
 @dataclass(frozen=True, eq=False)
@@ -75,8 +91,16 @@ class RobustReport:
         Indices of the input constraints in the final fit.
     constraints : Constraints
         The constraints of the final fit (lambda scaled, dropped ones removed).
+    residuals : (S,) array
+        Geometric residual ``|f| / |grad f|`` (box units) of every SURFACE
+        constraint at the final fit, in their input order (those beyond
+        ``local_radius`` of the last changes as last measured, within
+        ``LOCAL_CHECK_TOLERANCE * huber_k * scale``).
     history : list of dict
-        Per round: kind, scale, down-weighted, dropped, median residual.
+        Per round: kind, scale, down-weighted, dropped, median residual, and
+        ``measured``: how many residuals were measured for that round (all of
+        them for the first fit, then the neighbourhood of the changes plus the
+        check sample, or all of them when the check failed).
     converged : bool
         Stopped because the down-weighted set stopped changing (or was empty).
     """
@@ -89,6 +113,7 @@ class RobustReport:
     weights: np.ndarray
     kept: np.ndarray
     constraints: Constraints
+    residuals: np.ndarray = field(default_factory=lambda: np.zeros(0))
     history: list = field(default_factory=list)
     converged: bool = True
 
@@ -117,6 +142,47 @@ def geometric_residuals(surface, points) -> np.ndarray:
     with np.errstate(divide="ignore", invalid="ignore"):
         d = np.abs(f) / norm
     return np.where(np.abs(f) == 0, 0.0, np.where(norm > 0, d, np.inf))
+
+
+class _Neighbourhoods:
+    """Residuals measured again near the constraints a refit changed (see the module notes)."""
+
+    def __init__(self, points: np.ndarray, radius_spacings: float):
+        from scipy.spatial import cKDTree
+
+        self.points = points
+        spacing = float(np.median(cKDTree(points).query(points, k=2)[0][:, 1])) if len(points) > 1 else 0.0
+        self.radius = radius_spacings * spacing
+        self.rng = np.random.default_rng(0)
+
+    def remeasure(self, surface, d: np.ndarray, changed: np.ndarray, tolerance: float) -> tuple:
+        """(new residuals, how many were measured): near ``changed``, checked on a sample elsewhere."""
+        from scipy.spatial import cKDTree
+
+        n = len(self.points)
+        if len(changed) == 0 or len(changed) > n // 8:
+            return geometric_residuals(surface, self.points), n
+        gap = cKDTree(self.points[changed]).query(self.points)[0]
+        gap[changed] = 0.0
+        near = gap <= self.radius
+        if near.sum() > n // 2:
+            return geometric_residuals(surface, self.points), n
+        outside = np.flatnonzero(~near)
+        half = min(LOCAL_CHECK_SAMPLES // 2, len(outside))
+        # The check looks first where an unmeasured change would be largest: the nearest beyond the radius.
+        order = np.argsort(gap[outside], kind="stable")
+        shell, far = outside[order[:half]], outside[order[half:]]
+        sample = np.concatenate([shell, self.rng.choice(far, size=min(half, len(far)), replace=False)]).astype(int)
+        inside = np.flatnonzero(near)
+        both = np.concatenate([inside, sample])
+        fresh = geometric_residuals(surface, self.points[both])
+        moved = np.abs(fresh[len(inside):] - d[sample])
+        moved[np.isinf(fresh[len(inside):]) & np.isinf(d[sample])] = 0.0
+        if not (np.nan_to_num(moved, nan=np.inf) <= tolerance).all():
+            return geometric_residuals(surface, self.points), n + len(both)
+        out = d.copy()
+        out[both] = fresh
+        return out, len(both)
 
 
 def huber_weights(d, threshold: float) -> np.ndarray:
@@ -149,6 +215,7 @@ def robust_reweight(
     huber_rounds: int | None = None,
     first=None,
     refit: Callable[[np.ndarray], tuple] | None = None,
+    local_radius: float | None = LOCAL_RADIUS_SPACINGS,
 ) -> tuple:
     """Fit, then refit with the surface constraints' lambda scaled by robust weights.
 
@@ -184,6 +251,11 @@ def robust_reweight(
         for a dropped one), used for the refits instead of ``fit`` on the
         kept constraints; e.g. :class:`o3drbf.solvers.Refitter`, which
         updates one dense factorization instead of solving afresh.
+    local_radius : float or None
+        After a refit, measure residuals again only within this many
+        constraint spacings of the constraints whose lambda changed (checked
+        on a sample of the others; see the module notes).  ``None``: measure
+        every residual after every refit.
 
     Returns
     -------
@@ -202,6 +274,8 @@ def robust_reweight(
     huber_k = check_number("huber_k", huber_k, low=0.0, low_open=True)
     tukey_c = check_number("tukey_c", tukey_c, low=huber_k, low_open=True)
     n_huber = max(1, rounds // 2) if huber_rounds is None else check_number("huber_rounds", huber_rounds, low=0, high=rounds, integer=True)
+    if local_radius is not None:
+        local_radius = check_number("local_radius", local_radius, low=0.0)
     surf = np.flatnonzero(constraints.kind == SURFACE)
     if len(surf) == 0:
         raise ValueError("constraints have no SURFACE constraint to reweight; give surface constraints or skip the robust fit")
@@ -211,6 +285,9 @@ def robust_reweight(
     surface, solution = fit(constraints) if first is None else first
     pts = constraints.points[surf]
     d = geometric_residuals(surface, pts)
+    measured = len(pts)
+    local = None if local_radius is None else _Neighbourhoods(pts, local_radius)
+    lam_fit = lam0[surf].copy()  # lambda of the surface constraints in the current fit (inf: dropped)
     weights = np.ones(m)
     kept = np.arange(m)
     current = constraints
@@ -228,7 +305,7 @@ def robust_reweight(
             break
         down = d > huber_k * s
         if r == 0 and not (d >= tukey_c * s).any():
-            history.append({"kind": "check", "scale": s, "downweighted": 0, "dropped": 0, "median_residual": float(np.median(d))})
+            history.append({"kind": "check", "scale": s, "downweighted": 0, "dropped": 0, "median_residual": float(np.median(d)), "measured": measured})
             converged = True  # nothing beyond c s: consistent with the noise, no refit
             break
         tukey = huber_done >= n_huber
@@ -239,7 +316,7 @@ def robust_reweight(
         u = tukey_weights(d, tukey_c * s, huber_k * s) if tukey else huber_weights(d, huber_k * s)
         drop = u <= 0
         history.append({"kind": "tukey" if tukey else "huber", "scale": s, "downweighted": int(down.sum()),
-                        "dropped": int(drop.sum()), "median_residual": float(np.median(d))})
+                        "dropped": int(drop.sum()), "median_residual": float(np.median(d)), "measured": measured})
         if not down.any():
             converged = True
             break
@@ -261,7 +338,13 @@ def robust_reweight(
         current = Constraints(constraints.points[keep], constraints.values[keep], lam[keep], constraints.kind[keep])
         surface, solution = fit(current) if refit is None else refit(np.where(keep, lam, np.inf))
         done += 1
-        d = geometric_residuals(surface, pts)
+        lam_new = np.where(drop, np.inf, lam[surf])
+        changed = np.flatnonzero(lam_new != lam_fit)
+        lam_fit = lam_new
+        if local is None:
+            d, measured = geometric_residuals(surface, pts), len(pts)
+        else:
+            d, measured = local.remeasure(surface, d, changed, LOCAL_CHECK_TOLERANCE * huber_k * s)
     report = RobustReport(
         rounds=done,
         downweighted=int((weights[surf] < 1).sum()) if done else 0,
@@ -271,6 +354,7 @@ def robust_reweight(
         weights=weights,
         kept=kept,
         constraints=current,
+        residuals=d,
         history=history,
         converged=converged,
     )
