@@ -142,3 +142,42 @@ def test_memory_limits_are_checked_before_anything_is_built():
     with pytest.raises(MemoryError, match="fast solve of 200 constraints needs about"):
         session.solve()
     assert session.operator is None
+
+
+def test_refits_reuse_back_substitutions_and_stay_exact(monkeypatch):
+    """A sequence of refits with overlapping changed sets (the robust loop's pattern), each against numpy."""
+    from o3drbf.solvers import dense
+
+    kernel = MultiOrder(10, 0.01)
+    x, y, lam0 = problem()
+    q = polynomial_basis(x, kernel.polynomial_degree)
+    factor = dense.DenseFactor(kernel, x, lam0, q)
+    calls = []
+    real = dense.sla.cho_solve
+    monkeypatch.setattr(dense.sla, "cho_solve", lambda f, b, **k: (calls.append(b.shape[1]), real(f, b, **k))[1])
+    monkeypatch.setattr(dense, "MAX_KEPT_COLUMNS", 4)
+    for changed, scale in (([3, 50], 10.0), ([3, 50, 51], 1e3), ([3, 50, 51], np.inf), ([9, 60, 61, 62, 63], 5.0)):
+        lam = lam0.copy()
+        lam[changed] *= scale
+        w, p, k = factor.solve(y, lam)
+        w_ref, p_ref = reference(kernel, x, y, lam)
+        assert k == len(changed)
+        np.testing.assert_allclose(w[np.isfinite(lam)], w_ref, rtol=1e-6, atol=1e-7 * np.abs(w_ref).max())
+        np.testing.assert_allclose(p, p_ref, rtol=1e-6, atol=1e-9)
+    # [y, Q] once, then only the constraints not seen before: 2, 1, none, 5 (the cache of 4 is reset).
+    assert calls == [1 + q.shape[1], 2, 1, 5]
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 8, 301])
+def test_lower_kernel_matrix_is_the_full_matrix_lower_triangle(n):
+    from o3drbf.rbf.sums import kernel_matrix
+
+    x = np.random.default_rng(n).uniform(-1, 1, (n, 3))
+    kernel = MultiOrder(10, 0.01)
+    full = kernel_matrix(kernel, x)
+    lower = kernel_matrix(kernel, x, lower=True)
+    il = np.tril_indices(n)
+    np.testing.assert_array_equal(lower[il], full[il])
+    np.testing.assert_allclose(full, full.T, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="omit y"):
+        kernel_matrix(kernel, x, x, lower=True)

@@ -155,6 +155,22 @@ if HAVE_NUMBA:
                 dx, dy, dz = x[i, 0] - y[j, 0], x[i, 1] - y[j, 1], x[i, 2] - y[j, 2]
                 out[i, j] = _phi(code, p, math.sqrt(dx * dx + dy * dy + dz * dz))
 
+    @numba.njit(cache=True, inline="always")
+    def _lower_column(code, p, x, out, j):
+        for i in range(j, x.shape[0]):
+            dx, dy, dz = x[i, 0] - x[j, 0], x[i, 1] - x[j, 1], x[i, 2] - x[j, 2]
+            out[i, j] = _phi(code, p, math.sqrt(dx * dx + dy * dy + dz * dz))
+
+    @numba.njit(cache=True, parallel=True)
+    def _matrix_lower(code, p, x, out):
+        n = x.shape[0]
+        half = (n + 1) // 2
+        # Columns t and n - 1 - t in one task: every task fills about n + 1 entries.
+        for t in numba.prange(half):
+            _lower_column(code, p, x, out, t)
+            if n - 1 - t != t:
+                _lower_column(code, p, x, out, n - 1 - t)
+
 
 def check_sum_arrays(centres, weights, targets) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The arrays handed to compiled code: ``(N, 3)``, ``(N,)``, ``(M, 3)`` float64, finite, contiguous.
@@ -191,8 +207,13 @@ def direct_sum(kernel, centres, weights, targets, gradient: bool = False):
     return out
 
 
-def direct_matrix(kernel, x, y):
-    """Compiled dense kernel matrix, Fortran order."""
+def direct_matrix(kernel, x, y, lower: bool = False):
+    """Compiled dense kernel matrix, Fortran order.
+
+    ``lower=True`` (``y`` must be ``x``) fills only the lower triangle, the
+    diagonal included, and leaves the rest uninitialised: half the kernel
+    evaluations, and all a lower Cholesky factorization reads.
+    """
     code, p = _params(kernel)
     x = np.ascontiguousarray(x, float)
     y = np.ascontiguousarray(y, float)
@@ -202,7 +223,12 @@ def direct_matrix(kernel, x, y):
         if not np.isfinite(a).all():
             raise ValueError(f"{name} has NaN or infinite entries; compiled kernels need finite input")
     out = np.empty((len(x), len(y)), order="F")
-    _matrix(code, p, x, y, out)
+    if lower:
+        if x.shape != y.shape or not np.array_equal(x, y):
+            raise ValueError("lower=True needs y = x (a symmetric matrix)")
+        _matrix_lower(code, p, x, out)
+    else:
+        _matrix(code, p, x, y, out)
     return out
 
 

@@ -33,14 +33,22 @@ def polynomial_basis(points: np.ndarray, degree: int) -> np.ndarray:
 
 
 def kernel_matrix(
-    kernel: Kernel, x: np.ndarray, y: np.ndarray | None = None, order: str = "F", compiled: bool = True
+    kernel: Kernel, x: np.ndarray, y: np.ndarray | None = None, order: str = "F", compiled: bool = True,
+    lower: bool = False,
 ) -> np.ndarray:
     """Phi_ij = phi(|x_i - y_j|) as a dense array (Fortran order by default,
-    so LAPACK can factor it in place)."""
+    so LAPACK can factor it in place).
+
+    ``lower=True`` (with ``y`` omitted) promises the caller reads only the
+    lower triangle (e.g. a lower Cholesky factorization): the compiled path
+    then evaluates only that half and leaves the upper triangle uninitialised.
+    """
     x = np.asarray(x, dtype=float)
+    if lower and y is not None:
+        raise ValueError("lower=True is for the symmetric matrix of x with itself; omit y")
     y = x if y is None else np.asarray(y, dtype=float)
     if compiled and order == "F" and _direct.supports(kernel):
-        return _direct.direct_matrix(kernel, x, y)
+        return _direct.direct_matrix(kernel, x, y, lower=lower)
     r = cdist(x, y)
     out = kernel(r)
     return np.asfortranarray(out) if order == "F" else np.ascontiguousarray(out)

@@ -15,6 +15,8 @@ __all__ = ["solve_dense", "DenseFactor", "DENSE_MAX"]
 #: class of machine (exit 139, no message), and the fast solver is faster
 #: well before that (10k: 13 s vs 36 s).  Above it, method="dense" is refused.
 DENSE_MAX = 12_000
+#: Columns of the inverse a DenseFactor keeps for later refits (each N floats).
+MAX_KEPT_COLUMNS = 1024
 
 
 class DenseFactor:
@@ -49,11 +51,15 @@ class DenseFactor:
 
     def __init__(self, kernel, centres, lam, q):
         n = len(centres)
-        a = kernel_matrix(kernel, centres)
+        a = kernel_matrix(kernel, centres, lower=True)  # the factorization reads the lower triangle only
         a[np.diag_indices(n)] += lam
         self.factor = sla.cho_factor(a, lower=True, overwrite_a=True, check_finite=False)
         self.lam0 = np.array(lam, dtype=float)
         self.q = q
+        # Back-substitutions that do not depend on the smoothing, kept across refits:
+        # A^{-1} [y, Q] for the last y, and A^{-1} e_j for constraints already changed once.
+        self._base = None
+        self._columns: dict[int, np.ndarray] = {}
 
     def solve(self, y, lam=None):
         """Weights and polynomial for targets ``y`` and smoothing ``lam`` (default ``lambda_0``).
@@ -75,13 +81,14 @@ class DenseFactor:
         """
         q = self.q
         n, m = q.shape
-        x = sla.cho_solve(self.factor, np.column_stack([y, q]), check_finite=False)
+        y = np.asarray(y, dtype=float)
+        if self._base is None or not np.array_equal(self._base[0], y):
+            self._base = (y.copy(), sla.cho_solve(self.factor, np.column_stack([y, q]), check_finite=False))
+        x = self._base[1].copy()
         changed = np.zeros(0, dtype=int) if lam is None else np.flatnonzero(np.asarray(lam) != self.lam0)
         if len(changed):
             k = len(changed)
-            e = np.zeros((n, k))
-            e[changed, np.arange(k)] = 1.0
-            z = sla.cho_solve(self.factor, e, check_finite=False)
+            z = self._inverse_columns(changed)
             d = np.asarray(lam, dtype=float)[changed] - self.lam0[changed]
             inner = z[changed]
             inner[np.diag_indices(k)] += np.where(np.isinf(d), 0.0, 1.0 / np.where(np.isinf(d), 1.0, d))
@@ -95,6 +102,23 @@ class DenseFactor:
         else:
             p, w = np.zeros(0), u
         return w, p, len(changed)
+
+    def _inverse_columns(self, idx: np.ndarray) -> np.ndarray:
+        """Columns ``idx`` of ``A^{-1}`` (N x k), each back-substituted once and kept (up to MAX_KEPT_COLUMNS)."""
+        n = len(self.lam0)
+        new = [int(j) for j in idx if int(j) not in self._columns]
+        if new:
+            e = np.zeros((n, len(new)))
+            e[new, np.arange(len(new))] = 1.0
+            z = sla.cho_solve(self.factor, e, check_finite=False)
+            if len(self._columns) + len(new) > MAX_KEPT_COLUMNS:
+                self._columns.clear()
+            fresh = dict(zip(new, z.T))
+            if len(new) <= MAX_KEPT_COLUMNS:
+                self._columns.update(fresh)
+        else:
+            fresh = {}
+        return np.column_stack([self._columns[int(j)] if int(j) in self._columns else fresh[int(j)] for j in idx])
 
     def residual(self, y, lam, w, p) -> float:
         """Relative residual of ``(w, p)`` (all N weights) in the system with smoothing ``lam`` (``inf``: left out),
