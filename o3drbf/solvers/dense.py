@@ -31,7 +31,11 @@ class DenseFactor:
     solves the new system with k extra back-substitutions and a k x k solve
     instead of a new O(N^3) factorization.  ``lambda = inf`` leaves a
     constraint out (``D^{-1} = 0``: its weight is exactly zero and the rest is
-    the system without it).
+    the system without it).  The back-substitutions that do not depend on
+    the smoothing are kept for the next refit: ``A^{-1} [y, Q]`` and the
+    columns of ``A^{-1}`` of every constraint changed so far (up to
+    ``MAX_KEPT_COLUMNS``, N floats each), so a robust loop that changes the
+    same few constraints round after round back-substitutes only the new ones.
 
     Parameters
     ----------
