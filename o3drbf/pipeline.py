@@ -757,9 +757,8 @@ def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = F
     c = cset.constraints
     constraints = Constraints(c.points, c.values, params.smoothing, c.kind)
     # One factorization for the first fit and every robust refit (Woodbury updates of the dense one).
-    # Noisy (denoised) scans are nearly always refitted; clean ones rarely: their first solve may be fast.
     session = Refitter(params.kernel, constraints.points, constraints.values, constraints.smoothing, method=options.solver,
-                       refits=bool(options.robust and cset.denoised), progress=progress)
+                       progress=progress)
 
     def refit(smoothing=None):
         keep, solution = session.solve(smoothing)

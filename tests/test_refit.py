@@ -181,30 +181,3 @@ def test_lower_kernel_matrix_is_the_full_matrix_lower_triangle(n):
     np.testing.assert_allclose(full, full.T, rtol=0, atol=0)
     with pytest.raises(ValueError, match="omit y"):
         kernel_matrix(kernel, x, x, lower=True)
-
-
-def test_auto_one_fast_solve_then_dense_at_the_first_refit(monkeypatch):
-    """No refits expected: one fast solve; a refit after all switches to a dense factorization and updates it."""
-    import o3drbf.solvers as solvers
-
-    monkeypatch.setattr(solvers, "DENSE_ONE_SHOT_MAX", 100)
-    assert solvers.choose_method(300, refits=False)[0] == "fast" and solvers.choose_method(300)[0] == "dense"
-    assert solvers.choose_method(99, refits=False)[0] == "dense"
-    kernel = MultiOrder(10, 0.01)
-    x, y, lam0 = problem()
-    session = Refitter(kernel, x, y, lam0, refits=False)
-    keep, first = session.solve()
-    assert first.method == "fast"
-    w_ref, _ = reference(kernel, x, y, lam0)
-    np.testing.assert_allclose(first.weights, w_ref, rtol=1e-4, atol=1e-5 * np.abs(w_ref).max())
-    lam = lam0.copy()
-    lam[[3, 50]] *= 100.0
-    lam[7] = np.inf
-    keep, sol = session.solve(lam)
-    assert sol.method == "dense" and session.operator is None
-    w_ref, p_ref = reference(kernel, x, y, lam)
-    np.testing.assert_allclose(sol.weights, w_ref, rtol=1e-6, atol=1e-7 * np.abs(w_ref).max())
-    keep, sol = session.solve(lam * np.where(np.arange(len(lam)) == 60, 10.0, 1.0))
-    assert sol.info.get("update") == "woodbury"
-    # refits expected (the default): dense from the start
-    assert Refitter(kernel, x, y, lam0).solve()[1].method == "dense"

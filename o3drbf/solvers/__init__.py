@@ -34,7 +34,7 @@ from o3drbf.solvers.iterative import solve_gmres
 from o3drbf.validation import as_points, check_choice, check_number, per_point
 
 __all__ = ["Solution", "solve", "available_memory", "dense_memory", "ConvergenceWarning", "METHODS",
-           "DENSE_MAX", "DENSE_AUTO_MAX", "DENSE_ONE_SHOT_MAX", "FAST_EVALUATION_MIN", "choose_method", "Refitter", "solve_fast"]
+           "DENSE_MAX", "DENSE_AUTO_MAX", "FAST_EVALUATION_MIN", "choose_method", "Refitter", "solve_fast"]
 
 #: Solver methods. "fast" (grid products + preconditioned Krylov) is in o3drbf.solvers.fast.
 METHODS = ("auto", "dense", "iterative", "fast")
@@ -49,10 +49,6 @@ METHODS = ("auto", "dense", "iterative", "fast")
 #: 4 refits: dense 16.0 s, fast 31.7 s.  It is also the largest dense solve
 #: run at all (``DENSE_MAX``).
 DENSE_AUTO_MAX = 12_000
-#: ... but for a single solve (no robust refits expected) the fast solver is
-#: faster above this many: one solve of a clean 6-view cube's constraints,
-#: dense / fast: 6.7k 3.3 / 4.5 s, 8.8k 6.6 / 5.6 s, 11.0k 11.6 / 7.9 s.
-DENSE_ONE_SHOT_MAX = 8_000
 
 log = logging.getLogger("o3drbf")
 
@@ -62,20 +58,16 @@ log = logging.getLogger("o3drbf")
 FAST_EVALUATION_MIN = 20_000
 
 
-def choose_method(n: int, memory_limit: int | None = None, refits: bool = True) -> tuple[str, str]:
+def choose_method(n: int, memory_limit: int | None = None) -> tuple[str, str]:
     """The method ``"auto"`` picks for ``n`` constraints, and why.
 
-    Dense only when it is both the faster choice (``n <= DENSE_AUTO_MAX``
-    when refits with new smoothing will follow, which reuse its
-    factorization; ``n <= DENSE_ONE_SHOT_MAX`` for ``refits=False``) and
-    fits in memory; the fast solver otherwise.
+    Dense only when it is both the faster choice (``n <= DENSE_AUTO_MAX``)
+    and fits in memory; the fast solver otherwise.
     """
     limit = memory_limit_or_default(memory_limit)
     need = dense_memory(n)
     if n > DENSE_AUTO_MAX:
         return "fast", f"{n} constraints > {DENSE_AUTO_MAX}: the fast solver is faster there"
-    if not refits and n > DENSE_ONE_SHOT_MAX:
-        return "fast", f"{n} constraints > {DENSE_ONE_SHOT_MAX} and no refits expected: one fast solve is faster"
     if need > limit:
         return "fast", f"a dense solve of {n} constraints needs {gigabytes(need)}; limit {gigabytes(limit)}"
     return "dense", f"{n} constraints <= {DENSE_AUTO_MAX} and {gigabytes(need)} fits in {gigabytes(limit)}"
@@ -215,11 +207,11 @@ DROPPED_SMOOTHING = 1e6
 DENSE_RESIDUAL_WARN = 1e-6
 
 
-def resolve_method(method: str, n: int, m: int, limit: int, refits: bool = True) -> str:
+def resolve_method(method: str, n: int, m: int, limit: int) -> str:
     """The method a solve of ``n`` constraints and ``m`` polynomial terms runs: "auto" resolved
     (:func:`choose_method`), a dense solve refused above ``DENSE_MAX`` or ``limit`` bytes."""
     if method == "auto":
-        method, why = choose_method(n + m, limit, refits=refits)
+        method, why = choose_method(n + m, limit)
         log.info("solver: %s (%s)", method, why)
     if method == "dense" and n + m > DENSE_MAX:
         raise ValueError(
@@ -261,18 +253,12 @@ class Refitter:
         Resolved once, for N constraints (:func:`choose_method`).
     max_changed : int, optional
         Most changed constraints solved by an update; default N / 8.
-    refits : bool
-        Whether refits are expected (e.g. robust reweighting of noisy
-        data).  With ``method="auto"`` and ``refits=False`` the first solve
-        is fast above ``DENSE_ONE_SHOT_MAX`` constraints, and the first
-        refit, if one comes, switches to a dense factorization (up to
-        ``DENSE_AUTO_MAX``), which the later ones update.
     **options
         Passed to :func:`solve` (``progress``, ``rtol``, ``memory_limit``, ...).
     """
 
     def __init__(self, kernel: Kernel, centres, values, smoothing=0.0, method: str = "auto", max_changed: int | None = None,
-                 refits: bool = True, **options):
+                 **options):
         self.kernel = kernel
         self.centres, self.values, self.smoothing = system_inputs(centres, values, smoothing, method)
         n = len(self.centres)
@@ -285,11 +271,8 @@ class Refitter:
         self.previous = None  # the fast method's last [w; p]
         limit = memory_limit_or_default(options.get("memory_limit"))
         self.method = method
-        self.dense_at_refit = False  # "auto" chose fast for one solve; a refit switches to dense
         if n >= q.shape[1] + 1 and kernel.positive_definite:
-            self.method = resolve_method(method, n, q.shape[1], limit, refits=refits)
-            self.dense_at_refit = (method == "auto" and self.method == "fast"
-                                   and choose_method(n + q.shape[1], limit, refits=True)[0] == "dense")
+            self.method = resolve_method(method, n, q.shape[1], limit)
 
     def solve(self, smoothing=None) -> tuple[np.ndarray, Solution]:
         """Solve with ``smoothing`` (default lambda_0); ``inf`` leaves a constraint out.
@@ -312,10 +295,6 @@ class Refitter:
             raise ValueError(f"smoothing must be {len(lam)} values >= 0 (inf to leave a constraint out)")
         keep = np.isfinite(lam)
         t0 = time.perf_counter()
-        if self.dense_at_refit and self.previous is not None and (lam != self.smoothing).any():
-            log.info("solver: dense from the first refit on (%d constraints: refits update one factorization)",
-                     len(self.centres))
-            self.method, self.dense_at_refit, self.operator, self.previous = "dense", False, None, None
         if self.method == "dense" and self.factor is None:
             try:
                 self.factor = DenseFactor(self.kernel, self.centres, self.smoothing, self.q)
