@@ -148,11 +148,9 @@ class _Neighbourhoods:
     """Residuals measured again near the constraints a refit changed (see the module notes)."""
 
     def __init__(self, points: np.ndarray, radius_spacings: float):
-        from scipy.spatial import cKDTree
-
         self.points = points
-        spacing = float(np.median(cKDTree(points).query(points, k=2)[0][:, 1])) if len(points) > 1 else 0.0
-        self.radius = radius_spacings * spacing
+        self.radius_spacings = radius_spacings
+        self.radius = None  # set at the first refit: clean data (no refit) never pays for the spacing
         self.rng = np.random.default_rng(0)
 
     def remeasure(self, surface, d: np.ndarray, changed: np.ndarray, tolerance: float) -> tuple:
@@ -162,6 +160,9 @@ class _Neighbourhoods:
         n = len(self.points)
         if len(changed) == 0 or len(changed) > n // 8:
             return geometric_residuals(surface, self.points), n
+        if self.radius is None:
+            spacing = float(np.median(cKDTree(self.points).query(self.points, k=2)[0][:, 1])) if n > 1 else 0.0
+            self.radius = self.radius_spacings * spacing
         gap = cKDTree(self.points[changed]).query(self.points)[0]
         gap[changed] = 0.0
         near = gap <= self.radius
