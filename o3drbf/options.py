@@ -19,6 +19,7 @@ from o3drbf.validation import check_choice, check_number
 __all__ = [
     "DEFAULTS",
     "OUTLIER_METHODS",
+    "REGISTER_METHODS",
     "PAPER_VALUES",
     "VIEWER_OVERRIDES",
     "VIEWER_DISPLAY",
@@ -35,6 +36,7 @@ __all__ = [
     "PHOTO_DEFAULTS",
     "SOLVER_METHODS",
     "Options",
+    "RegistrationOptions",
     "OutlierOptions",
     "ConstraintOptions",
     "ParameterOptions",
@@ -49,11 +51,18 @@ __all__ = [
 #: "largest" (largest connected components), "statistical" (Open3D).
 OUTLIER_METHODS = ("auto", "none", "largest", "statistical")
 
+#: Registration of the scans to each other: "auto" (when the points carry
+#: their scan, ``point_camera``, and two or more scans overlap: rigid motions
+#: kept only when they make the scans markedly more consistent), "none".
+REGISTER_METHODS = ("auto", "none")
+
 #: Solver methods (see :func:`o3drbf.solvers.solve`).
 SOLVER_METHODS = ("auto", "dense", "iterative", "fast")
 
 #: Every default of every entry point (normalized box units).
 DEFAULTS: dict = {
+    # registration of the scans to each other (cameras and point_camera)
+    "register": "auto",
     # outliers
     "outliers": "auto",
     "outlier_radius": None,  # data units; None: 3 mean spacings
@@ -279,6 +288,34 @@ CONFIDENCE_DEFAULTS = {"neighbours": 32, "distance_scale": 2.0}
 
 #: The paper's fixed values, used for parameters left at None with ``auto=False``.
 PAPER_VALUES = {"delta": 10.0, "tau": 0.01, "sigma": 0.1, "lambda_surface": 1e-3}
+
+
+@dataclass(frozen=True)
+class RegistrationOptions:
+    """Registration of the scans to each other before anything else.
+
+    Attributes
+    ----------
+    method : {"auto", "none"}
+        "auto": each scan (the points of one camera, ``point_camera``) is
+        moved rigidly onto the others, with its camera
+        (:func:`o3drbf.prep.registration.refine_registration`); the motions
+        are kept only when the median distance between overlapping scans
+        falls by at least ``min_gain``, so scans registered already stay
+        exactly as they are.  "none": never.
+    min_gain : float
+        The drop in that distance the motions must bring, in [0, 1).
+    """
+
+    method: str = DEFAULTS["register"]
+    min_gain: float = 0.1
+
+    def validate(self) -> "RegistrationOptions":
+        check_choice("register", self.method, REGISTER_METHODS)
+        check_number("min_gain", self.min_gain, low=0.0, high=1.0)
+        if self.min_gain >= 1.0:
+            raise ValueError(f"min_gain must be below 1, got {self.min_gain}")
+        return self
 
 
 @dataclass(frozen=True)
@@ -510,6 +547,7 @@ class ConfidenceOptions:
 
 #: Flat option name -> (group attribute, field name).
 _FLAT = {
+    "register": ("registration", "method"),
     "outliers": ("outliers", "method"),
     "outlier_radius": ("outliers", "radius"),
     "keep_components": ("outliers", "keep_components"),
@@ -527,6 +565,7 @@ assert set(_FLAT) == set(DEFAULTS), set(_FLAT) ^ set(DEFAULTS)
 class Options:
     """All options of :func:`o3drbf.reconstruct`, one group per stage."""
 
+    registration: RegistrationOptions = field(default_factory=RegistrationOptions)
     outliers: OutlierOptions = field(default_factory=OutlierOptions)
     constraints: ConstraintOptions = field(default_factory=ConstraintOptions)
     parameters: ParameterOptions = field(default_factory=ParameterOptions)

@@ -3,6 +3,7 @@
 The data's path, each stage a public function that can be called alone::
 
     data = PointSet.create(points, normals, cameras=...)        # read (validated once)
+    data, registration = register_scans(data, options.registration)  # scans registered to each other (with cameras)
     data, outliers = remove_outliers(data, options.outliers)    # outliers
     data, estimated = ensure_normals(data)                      # normals, when neither normals nor cameras
     cset = build_constraints(data, options.constraints)         # constraints (normalized box)
@@ -29,7 +30,8 @@ import numpy as np
 
 from o3drbf.constraints.core import EXTERIOR, SPHERE, SURFACE, Constraints, bounding_sphere, exterior_from_normals, surface_constraints
 from o3drbf.options import (AUTO_SIZES, DEFAULTS, DENOISE_MIN_NOISE, PAPER_VALUES, SPECK_SPACINGS, auto_resolution, auto_surface_count,
-                            ConfidenceOptions, ConstraintOptions, ExtractOptions, FitOptions, Options, OutlierOptions, ParameterOptions)
+                            ConfidenceOptions, ConstraintOptions, ExtractOptions, FitOptions, Options, OutlierOptions, ParameterOptions,
+                            RegistrationOptions)
 from o3drbf.mesh.metrics import drop_specks
 from o3drbf.pointset import PointSet
 from o3drbf.prep.normalize import Normalization, check_spans_volume
@@ -75,7 +77,7 @@ class StageTiming:
     Attributes
     ----------
     name : str
-        "read", "outliers", "normals", "constraints", "parameters", "fit", "extract", "colour", "confidence" or "write".
+        "read", "register" (with ``point_camera``), "outliers", "normals", "constraints", "parameters", "fit", "extract", "colour", "confidence" or "write".
     seconds : float
         Wall time.
     peak_mb : float
@@ -193,6 +195,11 @@ class Report:
         Points given.
     duplicates_merged : int
         Exactly repeated points merged (their normals and colours averaged).
+    registration : dict or None
+        With cameras and ``point_camera``: whether the scans were moved
+        (``applied``), how many, the median distance between overlapping
+        scans ``before`` and ``after`` and the ``largest_motion`` (data
+        units), and the ``reason``; None when registration did not run.
     outliers_removed : int
     outlier_method, outlier_reason : str
     normals_estimated : bool
@@ -235,6 +242,7 @@ class Report:
     points: int = 0
     input_points: int = 0
     duplicates_merged: int = 0
+    registration: dict | None = None
     outliers_removed: int = 0
     outlier_method: str = "none"
     outlier_reason: str = ""
@@ -398,6 +406,54 @@ def merge_repeated(data: PointSet) -> tuple[PointSet, int]:
     log.warning("%d repeated point(s) merged", merged)
     kept = PointSet.create(points, normals, cameras=data.cameras, point_camera=point_camera, colors=colors, source=data.source)
     return kept, merged
+
+
+def register_scans(data: PointSet, options: RegistrationOptions = RegistrationOptions(), *, seed: int = 0):
+    """Move each scan rigidly onto the others, with its camera, when that makes them consistent.
+
+    Parameters
+    ----------
+    data : PointSet
+        Needs cameras and ``point_camera`` (the scan of each point); without
+        them nothing is done.
+    options : RegistrationOptions
+    seed : int
+
+    Returns
+    -------
+    PointSet
+        The moved points and cameras (the same object when nothing moved).
+    Registration or None
+        What :func:`o3drbf.prep.registration.refine_registration` found
+        (None when it did not run: ``register="none"``, no cameras or no
+        ``point_camera``).
+    """
+    options.validate()
+    if options.method == "none" or data.cameras is None or data.point_camera is None:
+        return data, None
+    from dataclasses import replace
+
+    from o3drbf.prep.registration import apply_transforms, refine_registration
+
+    toward = np.zeros_like(data.points)
+    for k, camera in enumerate(data.cameras):
+        sel = data.point_camera == k
+        if sel.any():
+            toward[sel] = camera.toward(data.points[sel])[0]
+    reg = refine_registration(data.points, data.point_camera, len(data.cameras), toward=toward, min_gain=options.min_gain, seed=seed)
+    log.info("registration: %s", reg.reason)
+    if not reg.applied:
+        return data, reg
+    cameras = [camera.moved(T) for camera, T in zip(data.cameras, reg.transforms)]
+    normals = data.normals
+    if normals is not None:
+        normals = normals.copy()
+        for k, T in enumerate(reg.transforms):
+            sel = data.point_camera == k
+            normals[sel] = normals[sel] @ T[:3, :3].T
+    moved = replace(data, points=apply_transforms(data.points, data.point_camera, reg.transforms), normals=normals,
+                    cameras=cameras, _cache={})
+    return moved, reg
 
 
 def remove_outliers(data: PointSet, options: OutlierOptions = OutlierOptions(), *, seed: int = 0) -> tuple[PointSet, OutlierReport]:
@@ -946,6 +1002,10 @@ def reconstruct(points, normals=None, *, cameras=None, point_camera=None, colors
         data, merged = merge_repeated(data)
         check_spans_volume(data.points)
     n_input = len(data) + merged
+    registration = None
+    if data.point_camera is not None:  # scans known: they may be registered to each other
+        with stages.stage("register"):
+            data, registration = register_scans(data, opts.registration, seed=seed)
     with stages.stage("outliers"):
         data, outliers = remove_outliers(data, opts.outliers, seed=seed)
     with stages.stage("normals"):
@@ -981,6 +1041,10 @@ def reconstruct(points, normals=None, *, cameras=None, point_camera=None, colors
         points=len(data),
         input_points=n_input,
         duplicates_merged=merged,
+        registration=None if registration is None else {
+            "applied": registration.applied, "scans": registration.scans, "before": registration.before, "after": registration.after,
+            "largest_motion": float(registration.motion.max()) if registration.applied else 0.0, "rounds": registration.rounds,
+            "reason": registration.reason},
         outliers_removed=outliers.removed,
         outlier_method=outliers.method,
         outlier_reason=outliers.reason,

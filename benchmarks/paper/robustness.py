@@ -84,7 +84,7 @@ FSCORE_PCT = 1.0  # F-score distance threshold, % of the diagonal
 F_TIE = 0.005
 TRIM_QUANTILE = 0.05
 COLUMNS = ("mesh", "views", "outliers_pct", "noise_pct", "misregistration_pct", "method", "points", "chamfer_l1", "f_score", "normal_consistency", "watertight",
-           "delta", "tau", "lambda_surface", "surface_constraints", "noise_estimate", "seconds", "error")
+           "delta", "tau", "lambda_surface", "surface_constraints", "noise_estimate", "registered", "seconds", "error")
 
 
 def make_mesh(name: str):
@@ -183,7 +183,8 @@ def run_case(mesh_name, mesh, views, outliers_pct, noise_pct, misregistration_pc
         sizes = {k: v for k, v in (("surface_count", args.surface_count), ("resolution", args.resolution)) if v is not None}
         rec = reconstruct(raw, cameras=cams, point_camera=raw_owner, seed=args.seed, **sizes)
         p = rec.report.parameters
-        row.update(delta=p["delta"], tau=p["tau"], lambda_surface=p["lambda_surface"], surface_constraints=rec.report.surface_constraints)
+        row.update(delta=p["delta"], tau=p["tau"], lambda_surface=p["lambda_surface"], surface_constraints=rec.report.surface_constraints,
+                   registered=bool(rec.report.registration and rec.report.registration["applied"]))
         row["seconds"] = time.perf_counter() - t
         row.update(measure(rec.mesh, mesh, args.seed))
     except (RuntimeError, ValueError) as exc:

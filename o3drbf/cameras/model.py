@@ -40,7 +40,7 @@ from __future__ import annotations
 import json
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Iterator, Sequence
 
@@ -234,6 +234,27 @@ class Camera:
         f = 0.5 * width / math.tan(math.radians(fov) / 2)
         K = np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
         return cls(K=K, R=R, t=-R @ eye, width=width, height=height, name=name)
+
+    def moved(self, transform) -> "Camera":
+        """The same sensor after its scan moved rigidly by ``transform``.
+
+        Parameters
+        ----------
+        transform : (4, 4) array_like
+            A rigid motion of world points, ``x' = T[:3, :3] @ x + T[:3, 3]``.
+
+        Returns
+        -------
+        Camera
+            Sees the moved points exactly where this one saw the originals
+            (same pixels, same depths).
+        """
+        T = np.asarray(transform, dtype=float)
+        if T.shape != (4, 4) or not np.isfinite(T).all():
+            raise ValueError(f"transform must be a finite 4x4 matrix, got shape {T.shape}")
+        Rt, tt = _rotation(T[:3, :3], "transform[:3, :3]"), T[:3, 3]
+        R = self.R @ Rt.T
+        return replace(self, R=R, t=self.t - R @ tt)
 
     # -- geometry -----------------------------------------------------------
 

@@ -40,7 +40,7 @@ def add_option_arguments(parser: argparse.ArgumentParser) -> None:
 
     :func:`options_from_args` turns the parsed values back into :class:`~o3drbf.options.Options`.
     """
-    from o3drbf.options import OUTLIER_METHODS, PAPER_VALUES, SOLVER_METHODS, count_or_auto
+    from o3drbf.options import OUTLIER_METHODS, PAPER_VALUES, REGISTER_METHODS, SOLVER_METHODS, count_or_auto
     from o3drbf.rbf.kernels import KERNELS
 
     d = DEFAULTS
@@ -57,7 +57,10 @@ def add_option_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--lambda-surface", type=float, default=d["lambda_surface"],
                    help=f"smoothing of surface constraints, >= 0 (default: --auto, or {PAPER_VALUES['lambda_surface']:g})")
     g.add_argument("--lambda-exterior", type=float, default=d["lambda_exterior"], help="smoothing of exterior constraints, relative to phi(0) of the kernel (default %(default)s)")
-    g = parser.add_argument_group("outliers")
+    g = parser.add_argument_group("scans and outliers")
+    g.add_argument("--register", default=d["register"], choices=list(REGISTER_METHODS),
+                   help="auto: with cameras and the scan of each point, move each scan rigidly onto the others when that makes "
+                   "them markedly more consistent (small pose errors); none: never (default %(default)s)")
     g.add_argument("--outliers", default=d["outliers"], choices=list(OUTLIER_METHODS),
                    help="auto: free-space consistency with cameras, an isolated-point rule without, and a robust fit; "
                    "largest: keep the largest connected components; statistical: Open3D's filter (default %(default)s)")
@@ -353,6 +356,7 @@ def summary(result, points, input_path, output_path, model_path=None, seconds=No
         f"o3drbf reconstruct: {input_path} -> {output_path}",
         f"  points           {s.points:,}" + ("  (normals estimated)" if s.normals_estimated else "")
         + (f", {s.duplicates_merged:,} repeated points merged" if s.duplicates_merged else ""),
+        *([f"  registration     {s.registration['reason']}"] if s.registration else []),
         f"  outliers         {s.outliers_removed:,} removed ({s.outlier_method}: {s.outlier_reason})",
         f"  constraints      {s.surface_constraints:,} surface, {s.exterior_constraints:,} exterior, {s.sphere_constraints:,} sphere",
         f"  mean spacing     {s.mean_spacing:.4g} (data units), {s.mean_spacing_box:.4f} in the 2x2x2 box",
@@ -389,7 +393,7 @@ def summary(result, points, input_path, output_path, model_path=None, seconds=No
     if s.cameras:
         seen = s.points_seen_per_camera or []
         shown = ", ".join(f"{v:,}" for v in seen[:12]) + (", ..." if len(seen) > 12 else "")
-        lines.insert(3, f"  cameras          {s.cameras}; surface constraints seen per camera: {shown}")
+        lines.insert(2, f"  cameras          {s.cameras}; surface constraints seen per camera: {shown}")
     if model_path:
         lines.append(f"  model            {model_path}")
     stages = ", ".join(f"{t.name} {t.seconds:.2f}" for t in s.stages)
