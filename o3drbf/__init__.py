@@ -11,7 +11,7 @@ regularized linear solve, meshed by marching cubes.
 >>> result.mesh, result.surface(points[:3])               # doctest: +SKIP
 
 The stages of :func:`reconstruct` are public too (:mod:`o3drbf.pipeline`):
-read -> outliers -> constraints -> parameters -> fit -> extract -> colour
+read -> register (scans with cameras) -> outliers -> constraints -> parameters -> fit -> extract -> colour
 (-> confidence and trim, when asked).
 """
 
@@ -31,6 +31,7 @@ from o3drbf.pipeline import (
     fit_surface,
     mesh_confidence,
     reconstruct,
+    register_scans,
     remove_outliers,
 )
 from o3drbf.pointset import PointSet, read_input
@@ -49,6 +50,7 @@ __all__ = [
     "DEFAULTS",
     "PointSet",
     "read_input",
+    "register_scans",
     "remove_outliers",
     "ensure_normals",
     "build_constraints",

@@ -238,6 +238,7 @@ def run_photos(
         cv.points,
         cameras=cams,
         point_camera=cv.best_camera(),
+        register="none",  # carved voxels share one grid: a camera that sees each, not scans that may be misregistered
         outliers="largest",
         outlier_radius=2.5 * cv.voxel_size,
         delta=delta,

@@ -6,10 +6,19 @@ so where two scans overlap the surface appears twice, a fraction of the
 noise apart.  Smoothing averages the two sheets but cannot tell which is
 right, and the mix changes from place to place with the scans' coverage.
 :func:`refine_registration` moves every scan rigidly onto the others
-(point-to-plane ICP with a robust Tukey loss, Open3D's
-``registration_icp``; each scan in turn against all the others, repeated
+(point-to-plane ICP, each scan in turn against all the others, repeated
 until the scans stop moving), then removes the mean motion (the errors are
 assumed to average out, as nothing else says where the object is).
+
+The ICP is a few lines of Gauss-Newton rather than Open3D's
+``registration_icp``, for two things that one lacks: a prior on the motion
+(directions the overlap does not pin, a plane sliding along itself or a
+cylinder turning about its axis, stay where the scan was instead of
+drifting on the noise: a first version built on Open3D's ICP slid 3-view
+scans of a cube, which overlap on one face per pair, by up to the cube's
+size) and matches only
+between normals turned toward each scan's own sensor (the two sides of a
+thin wall face away from each other and are never matched).
 
 The motions are kept only when they make the scans markedly more
 consistent: the median point-to-plane distance between overlapping scans
@@ -35,9 +44,9 @@ __all__ = ["Registration", "refine_registration", "apply_transforms"]
 SAMPLE_PER_SCAN = 6000
 #: Fewest points a scan needs to be registered (others stay where they are).
 MIN_SCAN_POINTS = 200
-#: Neighbours for each scan's own normals (orientation does not matter).
+#: Neighbours for each scan's own normals (turned toward the scan's sensor).
 NORMAL_NEIGHBOURS = 24
-#: Matches between scans count only where the normals agree this well (|cos|).
+#: Matches between scans count only where the normals agree this well (cosine).
 NORMAL_AGREEMENT = 0.8
 
 
