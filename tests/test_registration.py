@@ -163,3 +163,12 @@ def test_reconstruct_leaves_registered_scans_alone(torus):
     off = o3drbf.reconstruct(pts, cameras=cams, point_camera=owner, resolution=64, surface_count=1500, register="none")
     assert not default.report.registration["applied"]
     np.testing.assert_array_equal(np.asarray(default.mesh.vertices), np.asarray(off.mesh.vertices))
+
+
+def test_too_many_scans_are_left_to_a_registration_tool():
+    from o3drbf.prep.registration import MAX_SCANS
+
+    pts = np.random.default_rng(2).normal(size=(250 * (MAX_SCANS + 1), 3))
+    owner = np.repeat(np.arange(MAX_SCANS + 1), 250)
+    reg = refine_registration(pts, owner)
+    assert not reg.applied and reg.rounds == 0 and f"more than {MAX_SCANS}" in reg.reason

@@ -42,6 +42,12 @@ __all__ = ["Registration", "refine_registration", "apply_transforms"]
 #: Points per scan used for the ICP (a seeded random subset): the error is
 #: rigid, so a few thousand points determine it.
 SAMPLE_PER_SCAN = 6000
+#: ... and at most this many over all the scans (at least 1,000 a scan), so
+#: the cost grows with the number of scans, not with the points.
+SAMPLE_TOTAL = 60000
+#: Most scans registered: each pass aligns every scan to all the others, so
+#: more scans (a video's frames) are a job for a registration tool.
+MAX_SCANS = 64
 #: Fewest points a scan needs to be registered (others stay where they are).
 MIN_SCAN_POINTS = 200
 #: Neighbours for each scan's own normals (turned toward the scan's sensor).
@@ -254,12 +260,17 @@ def refine_registration(points, point_camera, n_cameras: int | None = None, *, t
         return Registration(identity, False, float("nan"), float("nan"), np.zeros(n_cameras), 0, len(scans),
                             "scans not registered: fewer than two scans with points", params)
 
+    if len(scans) > MAX_SCANS:
+        return Registration(identity, False, float("nan"), float("nan"), np.zeros(n_cameras), 0, len(scans),
+                            f"{len(scans)} scans left as they were: more than {MAX_SCANS} (register them with a registration "
+                            "tool first, or pass register='none')", params)
     rng = np.random.default_rng(seed)
+    per_scan = min(SAMPLE_PER_SCAN, max(1000, SAMPLE_TOTAL // len(scans)))
     samples, normals = [], []
     for k in scans:
         idx = np.flatnonzero(owner == k)
-        if len(idx) > SAMPLE_PER_SCAN:
-            idx = np.sort(rng.choice(idx, SAMPLE_PER_SCAN, replace=False))
+        if len(idx) > per_scan:
+            idx = np.sort(rng.choice(idx, per_scan, replace=False))
         p = np.array(pts[idx], dtype=float)
         samples.append(p)
         normals.append(_scan_normals(p, None if view is None else view[idx]))
