@@ -326,6 +326,6 @@ def refine_registration(points, point_camera, n_cameras: int | None = None, *, t
     applied = bool(np.isfinite(before) and np.isfinite(after) and after <= (1.0 - min_gain) * before)
     verdict = "moved" if applied else "left as they were"
     reason = (f"{len(scans)} scans {verdict}: median distance between overlapping scans {before:.3g} -> {after:.3g} "
-              f"(needs a {100 * min_gain:.0f} % drop), largest motion {motion.max():.3g} ({rounds} rounds)")
+              f"(needs a {100 * min_gain:.0f} % drop), largest motion {motion.max():.3g} ({rounds} pass{'es' if rounds != 1 else ''})")
     return Registration(transforms if applied else identity, applied, before, after, motion, rounds, len(scans), reason,
                         dict(params, spacing=spacing, reach=reach, scale=scale))
