@@ -445,12 +445,7 @@ def register_scans(data: PointSet, options: RegistrationOptions = RegistrationOp
     if not reg.applied:
         return data, reg
     cameras = [camera.moved(T) for camera, T in zip(data.cameras, reg.transforms)]
-    normals = data.normals
-    if normals is not None:
-        normals = normals.copy()
-        for k, T in enumerate(reg.transforms):
-            sel = data.point_camera == k
-            normals[sel] = normals[sel] @ T[:3, :3].T
+    normals = None if data.normals is None else apply_transforms(data.normals, data.point_camera, reg.transforms, vectors=True)
     moved = replace(data, points=apply_transforms(data.points, data.point_camera, reg.transforms), normals=normals,
                     cameras=cameras, _cache={})
     return moved, reg

@@ -172,3 +172,20 @@ def test_too_many_scans_are_left_to_a_registration_tool():
     owner = np.repeat(np.arange(MAX_SCANS + 1), 250)
     reg = refine_registration(pts, owner)
     assert not reg.applied and reg.rounds == 0 and f"more than {MAX_SCANS}" in reg.reason
+
+
+def test_register_scans_turns_normals_with_their_scan(torus):
+    pts, owner, cams = six_views(torus, width=120, height=90, seed=4)
+    r = np.hypot(pts[:, 0], pts[:, 1])
+    ring = np.stack([pts[:, 0] * R_TORUS / r, pts[:, 1] * R_TORUS / r, np.zeros(len(pts))], axis=1)
+    normals = (pts - ring) / np.linalg.norm(pts - ring, axis=1, keepdims=True)  # the torus's true normals
+    moved, moved_cams = misregister(pts, owner, cams, 0.01, seed=7)
+    data = o3drbf.PointSet.create(moved, normals, cameras=moved_cams, point_camera=owner)
+    out, reg = o3drbf.register_scans(data, o3drbf.Options().registration)
+    assert reg.applied
+    for k, T in enumerate(reg.transforms):
+        sel = owner == k
+        np.testing.assert_allclose(out.normals[sel], normals[sel] @ T[:3, :3].T, atol=1e-12)
+        np.testing.assert_allclose(out.points[sel], moved[sel] @ T[:3, :3].T + T[:3, 3], atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(out.normals, axis=1), 1.0, atol=1e-9)
+    assert out.cameras[0] is not moved_cams[0] and data.points is moved  # a new PointSet; the input untouched

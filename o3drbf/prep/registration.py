@@ -95,15 +95,23 @@ class Registration:
         return self.reason
 
 
-def apply_transforms(points, point_camera, transforms) -> np.ndarray:
-    """Each scan's points moved by its transform (points of no scan, ``point_camera < 0``, stay)."""
+def apply_transforms(points, point_camera, transforms, vectors: bool = False) -> np.ndarray:
+    """Each scan's points moved by its transform (points of no scan, ``point_camera < 0``, stay).
+
+    With ``vectors=True`` the rows are directions (normals): only rotated.
+    """
     pts = np.array(as_points(points, min_count=0), dtype=float)
     owner = np.asarray(point_camera)
     for k, T in enumerate(np.asarray(transforms, dtype=float)):
         sel = owner == k
         if sel.any():
-            pts[sel] = pts[sel] @ T[:3, :3].T + T[:3, 3]
+            pts[sel] = pts[sel] @ T[:3, :3].T + (0.0 if vectors else T[:3, 3])
     return pts
+
+
+def _others(arrays: list, k: int) -> np.ndarray:
+    """The rows of every scan but scan ``k``, stacked."""
+    return np.vstack([a for i, a in enumerate(arrays) if i != k])
 
 
 def _scan_normals(points: np.ndarray, toward: np.ndarray | None) -> np.ndarray:
@@ -180,9 +188,8 @@ def _overlap(samples: list, normals: list, reach: float) -> tuple[list, np.ndarr
     """For each scan, its sample points matched on another scan within ``reach``; and all the matches' |residuals|."""
     kept, resid = [], []
     for k in range(len(samples)):
-        others = [i for i in range(len(samples)) if i != k]
-        tgt = np.vstack([samples[i] for i in others])
-        ok, r, _ = _plane_residuals(samples[k], normals[k], tgt, np.vstack([normals[i] for i in others]), cKDTree(tgt), reach)
+        tgt = _others(samples, k)
+        ok, r, _ = _plane_residuals(samples[k], normals[k], tgt, _others(normals, k), cKDTree(tgt), reach)
         kept.append(ok)
         resid.append(np.abs(r))
     return kept, np.concatenate(resid)
@@ -196,10 +203,8 @@ def _consistency(samples: list, normals: list, pairs: list, reach: float) -> flo
     """
     values = []
     for k in range(len(samples)):
-        others = [i for i in range(len(samples)) if i != k]
-        tgt = np.vstack([samples[i] for i in others])
-        ok, r, _ = _plane_residuals(samples[k][pairs[k]], normals[k][pairs[k]], tgt, np.vstack([normals[i] for i in others]),
-                                    cKDTree(tgt), reach)
+        tgt = _others(samples, k)
+        ok, r, _ = _plane_residuals(samples[k][pairs[k]], normals[k][pairs[k]], tgt, _others(normals, k), cKDTree(tgt), reach)
         values.append(np.minimum(np.abs(r), reach))
         values.append(np.full(int((~ok).sum()), reach))
     v = np.concatenate(values)
@@ -293,9 +298,7 @@ def refine_registration(points, point_camera, n_cameras: int | None = None, *, t
     for rounds in range(1, max_rounds + 1):
         moved = 0.0
         for k in range(len(scans)):
-            others = [i for i in range(len(scans)) if i != k]
-            new = _icp(samples[k], normals[k], np.vstack([cur[i] for i in others]), np.vstack([cur_n[i] for i in others]), reach,
-                       scale, T[k])
+            new = _icp(samples[k], normals[k], _others(cur, k), _others(cur_n, k), reach, scale, T[k])
             moved = max(moved, _motion(new @ np.linalg.inv(T[k]), cur[k]))
             T[k] = new
             cur[k] = samples[k] @ new[:3, :3].T + new[:3, 3]
