@@ -1,26 +1,35 @@
 """Time the command line the way a user runs it, against Open3D Poisson and ferreus_rbf.
 
-Every tool runs in its own process under ``/usr/bin/time -v`` (wall seconds and peak
-resident memory), on inputs generated here:
+Every tool runs in its own process (start-up and imports included) under
+``/usr/bin/time -v`` (wall seconds and peak resident memory), on inputs generated here.
+o3drbf runs ``o3drbf reconstruct IN -o OUT`` with its defaults (plus the flags a case
+names) and writes ``--report`` JSON, from which the per-stage table comes.
 
-- ``torus-15k``: a torus sample with normals (``o3drbf.synthetic``), written by
-  ``o3drbf.io.files.write_points``; ``o3drbf reconstruct IN.ply -o OUT.ply``, no options;
-- ``scan-3views``: three synthetic range scans of the Stanford bunny (or of a torus
-  mesh when the bunny is absent) with their cameras, as an o3drbf scan ``.json``;
-- ``torus-90k --surface-count 30000`` and ``torus-300k --surface-count 100000``
-  (skipped with ``--quick``).
+Cases
+-----
+- ``start-up``: ``o3drbf --help``; 1,000 points of a sphere with normals.
+- ``torus 15k``: a torus sample with normals, defaults.
+- ``scan 27k``: three range scans 120 degrees apart (320 x 240 pixels) of the Stanford
+  bunny (a torus mesh when ``../shared/data`` is absent), with their cameras, as an
+  o3drbf scan ``.json``; defaults.
+- ``torus 90k --surface-count 30000``, ``torus 300k --surface-count 100000``
+  (not with ``--quick``); ``torus 900k --surface-count 300000`` and
+  ``torus 1M --all-points`` with ``--large``.
 
-Peers on the same points: Open3D Poisson (depth 8 and 9) after Open3D normal
-estimation and consistent orientation (what a user without normals runs), and
-ferreus_rbf when importable (linear kernel, the points plus two off-surface points per
-point along the normals, as many points as o3drbf's surface constraints; meshed by its
-marching tetrahedra at the same 128-cell resolution).
+Peers see what a user of theirs has: Open3D Poisson (depth 8 and 9) uses the cloud's
+normals when it has them; for the scans, which have none, it estimates them (30
+neighbours) and turns each toward its scanner, inside its timed process.  ferreus_rbf
+(when importable; ``pip install ferreus-rbf``) fits the same normals' points (as many as
+o3drbf's surface constraints, plus two off-surface points each along the normal; linear
+kernel) and builds its isosurface at o3drbf's resolution.
 
 Usage::
 
-    python benchmarks/user_path.py [--quick] [--out DIR]
+    python benchmarks/user_path.py [--quick | --large] [--record FILE.json] [--out DIR]
 
-Prints a markdown table (seconds, GB, ratios to o3drbf) and the load average.
+Prints the table (seconds, GB, o3drbf's time over each peer's), the per-stage table and
+the targets, with the load average and thread count; ``--record`` also writes them as
+data (``benchmarks/recorded/``).
 """
 
 from __future__ import annotations
@@ -28,6 +37,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import platform
 import re
 import subprocess
 import sys
@@ -40,6 +50,14 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 BUNNY = ROOT.parent / "shared" / "data" / "stanford_bunny" / "reconstruction" / "bun_zipper.ply"
+
+#: What the issue asks for, as (case, peer, largest ratio o3drbf / peer).
+TARGETS = [
+    ("scan 27k", "Poisson d8", 1.5),
+    ("torus 90k, --surface-count 30000", "ferreus_rbf", 1.0),
+    ("torus 300k, --surface-count 100000", "ferreus_rbf", 1.0),
+    ("torus 900k, --surface-count 300000", "ferreus_rbf", 1.0),
+]
 
 
 def o3drbf_command() -> list[str]:
@@ -62,32 +80,36 @@ def timed(cmd: list[str], env=None) -> dict:
 # --------------------------------------------------------------------------------------
 # inputs
 # --------------------------------------------------------------------------------------
-def make_inputs(folder: Path, quick: bool) -> list[dict]:
+def make_inputs(folder: Path, size: str) -> list[dict]:
+    """The cases for ``size`` in ("quick", "full", "large"), their files written into ``folder``."""
     from o3drbf.io.files import write_points
-    from o3drbf.synthetic.shapes import Torus
+    from o3drbf.synthetic.shapes import Sphere, Torus
 
     cases = []
+    p, n = Sphere(1.0).sample(1000, seed=0)
+    write_points(folder / "sphere1k.ply", p, n)
+    cases.append({"name": "start-up: 1,000 points", "input": folder / "sphere1k.ply", "points": folder / "sphere1k.ply", "args": []})
     p, n = Torus().sample(15000, seed=0)
     write_points(folder / "torus15k.ply", p, n)
-    cases.append({"name": "torus 15k pts, defaults", "input": folder / "torus15k.ply", "points": folder / "torus15k.ply",
-                  "args": [], "count": 3000})
-    scan = make_scan(folder)
-    cases.append({"name": "3-view range scan (json), defaults", "input": scan[0], "points": scan[1], "args": [], "count": 3000})
-    if not quick:
-        for total, count in ((90000, 30000), (300000, 100000)):
-            p, n = Torus().sample(total, seed=1)
-            path = folder / f"torus{total // 1000}k.ply"
-            write_points(path, p, n)
-            cases.append({"name": f"torus {total // 1000}k pts, --surface-count {count}", "input": path, "points": path,
-                          "args": ["--surface-count", str(count)], "count": count})
+    cases.append({"name": "torus 15k", "input": folder / "torus15k.ply", "points": folder / "torus15k.ply", "args": []})
+    scan, raw = make_scan(folder)
+    cases.append({"name": "scan 27k", "input": scan, "points": raw, "args": []})
+    sizes = {"quick": (), "full": ((90000, 30000), (300000, 100000)),
+             "large": ((90000, 30000), (300000, 100000), (900000, 300000), (1000000, None))}[size]
+    for total, count in sizes:
+        p, n = Torus().sample(total, seed=1)
+        label = f"{total // 1000}k" if total < 1000000 else f"{total // 1000000}M"
+        path = folder / f"torus{label}.ply"
+        write_points(path, p, n)
+        args = ["--all-points"] if count is None else ["--surface-count", str(count)]
+        cases.append({"name": f"torus {label}, {' '.join(args)}", "input": path, "points": path, "args": args})
     return cases
 
 
 def make_scan(folder: Path):
-    """Three range scans 120 degrees apart with cameras: (scan .json, points .ply with estimated normals)."""
+    """Three range scans 120 degrees apart with cameras: (scan .json, raw points .ply + each point's scanner .npy)."""
     import open3d as o3d
 
-    from o3drbf.io.files import write_points
     from o3drbf.synthetic.scans import range_scans, write_scan_json
 
     if BUNNY.exists():
@@ -97,41 +119,51 @@ def make_scan(folder: Path):
         mesh = o3d.geometry.TriangleMesh.create_torus(torus_radius=0.7, tube_radius=0.25, radial_resolution=60,
                                                       tubular_resolution=30)
         up = (0.0, 0.0, 1.0)
-    points, owner, cams = range_scans(mesh, n_views=3, elevation=20.0, up=up, width=200, height=150, seed=0)
-    path = write_scan_json(folder / "scan3.json", points, cams, point_camera=owner)
-    # Peers get the same points with Open3D normals oriented toward the owning camera.
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(30))
-    nrm = np.asarray(pcd.normals).copy()
+    points, owner, cams = range_scans(mesh, n_views=3, elevation=20.0, up=up, width=320, height=240, seed=0)
+    path = write_scan_json(folder / "scan27k.json", points, cams, point_camera=owner)
+    raw = folder / "scan27k_points.ply"
+    o3d.io.write_point_cloud(str(raw), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)))
     centres = np.array([c.center for c in cams])[np.maximum(owner, 0)]
-    flip = np.einsum("ij,ij->i", nrm, centres - points) < 0
-    nrm[flip] *= -1
-    ply = folder / "scan3_points.ply"
-    write_points(ply, points, nrm)
-    return Path(path), ply
+    np.save(raw.with_suffix(".scanners.npy"), centres)
+    return Path(path), raw
 
 
 # --------------------------------------------------------------------------------------
 # peers (each run as a separate process by this same file)
 # --------------------------------------------------------------------------------------
-def peer_poisson(points: str, depth: int, out: str) -> None:
+def _cloud_with_normals(points: str):
+    """The cloud as a user has it: its normals, or (a scan) normals estimated and turned toward each point's scanner."""
     import open3d as o3d
 
     pcd = o3d.io.read_point_cloud(points)
-    pcd.normals = o3d.utility.Vector3dVector(np.zeros((0, 3)))  # estimate them, as a user without normals would
-    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(30))
-    pcd.orient_normals_consistent_tangent_plane(15)
+    if not pcd.has_normals():
+        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(30))
+        scanners = Path(points).with_suffix(".scanners.npy")
+        p, n = np.asarray(pcd.points), np.asarray(pcd.normals).copy()
+        if scanners.exists():
+            flip = np.einsum("ij,ij->i", n, np.load(scanners) - p) < 0
+            n[flip] *= -1
+            pcd.normals = o3d.utility.Vector3dVector(n)
+        else:
+            pcd.orient_normals_consistent_tangent_plane(15)
+    return pcd
+
+
+def peer_poisson(points: str, depth: int, out: str) -> None:
+    import open3d as o3d
+
+    pcd = _cloud_with_normals(points)
     mesh, _ = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pcd, depth=depth)
     o3d.io.write_triangle_mesh(out, mesh)
     print(json.dumps({"vertices": len(mesh.vertices), "triangles": len(mesh.triangles)}))
 
 
-def peer_ferreus(points: str, count: int, out: str) -> None:
+def peer_ferreus(points: str, spec: str, out: str) -> None:
     import ferreus_rbf as fr
-    import open3d as o3d
     from ferreus_rbf.interpolant_config import InterpolantSettings, RBFKernelType
 
-    pcd = o3d.io.read_point_cloud(points)
+    count, resolution = (int(x) for x in spec.split(":"))
+    pcd = _cloud_with_normals(points)
     p, n = np.asarray(pcd.points), np.asarray(pcd.normals)
     if len(p) > count:
         idx = np.random.default_rng(0).choice(len(p), count, replace=False)
@@ -143,7 +175,7 @@ def peer_ferreus(points: str, count: int, out: str) -> None:
     rbf = fr.RBFInterpolator(x, y, InterpolantSettings(RBFKernelType.Linear))
     pad = 0.05 * (hi - lo)
     extents = np.r_[lo - pad, hi + pad]
-    mesh = rbf.build_isosurface(extents, float((hi - lo + 2 * pad).max()) / 128, 0.0)
+    mesh = rbf.build_isosurface(extents, float((hi - lo + 2 * pad).max()) / resolution, 0.0)
     print(json.dumps({"vertices": len(mesh.vertices), "triangles": len(mesh.facets)}))
 
 
@@ -158,60 +190,109 @@ def have_ferreus() -> bool:
 # --------------------------------------------------------------------------------------
 # main
 # --------------------------------------------------------------------------------------
-def summary_field(text: str, key: str) -> str:
-    m = re.search(rf"^\s*{key}\s+(.*)$", text, re.M)
-    return m.group(1).strip() if m else ""
+def run_case(case: dict, folder: Path, env: dict, peers: bool) -> list[dict]:
+    """o3drbf on one case, then each peer on the same points; one row each."""
+    stem = Path(case["input"]).stem
+    out, report = folder / f"{stem}_o3drbf.ply", folder / f"{stem}_o3drbf.json"
+    report.unlink(missing_ok=True)
+    r = timed(o3drbf_command() + ["reconstruct", str(case["input"]), "-o", str(out), "--report", str(report)] + case["args"], env=env)
+    if r["rc"] != 0:
+        print(r["err"], file=sys.stderr)
+    rep = json.loads(report.read_text()) if report.exists() else {}
+    row = {"case": case["name"], "tool": "o3drbf", "seconds": r["seconds"], "gb": r["gb"], "rc": r["rc"],
+           "detail": f"{rep.get('surface_constraints', '?')} surface constraints, {rep.get('solver', '?')}, "
+                     f"{rep.get('resolution', '?')} cells, {rep.get('triangles', '?')} triangles",
+           "stages": rep.get("stages", [])}
+    rows = [row]
+    if not peers:
+        return rows
+    jobs = [("Poisson d8", "poisson", "8"), ("Poisson d9", "poisson", "9")]
+    if have_ferreus() and rep:
+        jobs.append(("ferreus_rbf", "ferreus", f"{rep['surface_constraints']}:{rep.get('resolution') or 128}"))
+    for label, kind, arg in jobs:
+        pout = folder / f"{stem}_{kind}{arg.split(':')[0]}.ply"
+        pr = timed([sys.executable, str(Path(__file__).resolve()), "--peer", kind, str(case["points"]), arg, str(pout)], env=env)
+        if pr["rc"] != 0:
+            print(pr["err"], file=sys.stderr)
+        info = pr["out"].strip().splitlines()[-1] if pr["rc"] == 0 and pr["out"].strip() else "failed"
+        rows.append({"case": case["name"], "tool": label, "seconds": pr["seconds"], "gb": pr["gb"], "rc": pr["rc"], "detail": info})
+    return rows
+
+
+def ratio(rows: list[dict], case: str, tool: str) -> float | None:
+    """o3drbf's seconds over ``tool``'s on ``case`` (None when either is missing or failed)."""
+    mine = [r for r in rows if r["case"] == case and r["tool"] == "o3drbf" and r["rc"] == 0]
+    peer = [r for r in rows if r["case"] == case and r["tool"] == tool and r["rc"] == 0]
+    return mine[0]["seconds"] / peer[0]["seconds"] if mine and peer else None
+
+
+def tables(rows: list[dict], help_seconds: float) -> str:
+    """The markdown tables: times, stages, targets."""
+    lines = ["| case | tool | seconds | peak GB | o3drbf / this | notes |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        q = ratio(rows, r["case"], r["tool"]) if r["tool"] != "o3drbf" else 1.0
+        status = "" if r["rc"] == 0 else f" (exit {r['rc']})"
+        lines.append(f"| {r['case']} | {r['tool']}{status} | {r['seconds']:.1f} | {r['gb']:.2f} | "
+                     f"{'-' if q is None else f'{q:.2f}'} | {r['detail']} |")
+    lines += ["", f"`o3drbf --help`: {help_seconds:.2f} s", ""]
+    mine = [r for r in rows if r["tool"] == "o3drbf" and r["stages"]]
+    names = []
+    for r in mine:
+        names += [s["name"] for s in r["stages"] if s["name"] not in names]
+    lines.append("| case (o3drbf) | " + " | ".join(names) + " | imports and start-up | peak GB |")
+    lines.append("|---|" + "---|" * (len(names) + 2))
+    for r in mine:
+        by = {s["name"]: s for s in r["stages"]}
+        inside = sum(s["seconds"] for s in r["stages"])
+        cells = [f"{by[n]['seconds']:.2f} ({by[n]['peak_mb'] / 1024:.2f})" if n in by else "-" for n in names]
+        lines.append(f"| {r['case']} | " + " | ".join(cells) + f" | {r['seconds'] - inside:.2f} | {r['gb']:.2f} |")
+    lines += ["", "(each stage: seconds, and in brackets the process's peak GB at its end)", ""]
+    lines += ["| target | o3drbf / peer | limit | met |", "|---|---|---|---|"]
+    for case, tool, limit in TARGETS:
+        q = ratio(rows, case, tool)
+        if q is not None:
+            lines.append(f"| {case} vs {tool} | {q:.2f} | {limit:g} | {'yes' if q <= limit else 'no'} |")
+    return "\n".join(lines)
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true", help="the two small cases only (~2 minutes)")
+    size = ap.add_mutually_exclusive_group()
+    size.add_argument("--quick", action="store_true", help="start-up, the 15k torus and the 27k scan only")
+    size.add_argument("--large", action="store_true", help="also 300,000 constraints and 1,000,000 points (long; needs ~10 GB)")
     ap.add_argument("--out", type=Path, default=None, help="folder for inputs and meshes (default: a temporary one)")
+    ap.add_argument("--record", type=Path, default=None, help="also write the rows, tables and machine as JSON here")
     ap.add_argument("--no-peers", action="store_true", help="o3drbf only")
     ap.add_argument("--peer", nargs=4, metavar=("KIND", "POINTS", "ARG", "OUT"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.peer:
         kind, points, arg, out = args.peer
-        if kind == "poisson":
-            peer_poisson(points, int(arg), out)
-        else:
-            peer_ferreus(points, int(arg), out)
+        (peer_poisson(points, int(arg), out) if kind == "poisson" else peer_ferreus(points, arg, out))
         return 0
     folder = args.out or Path(tempfile.mkdtemp(prefix="o3drbf-user-path-"))
     folder.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ)
     env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    cases = make_inputs(folder, "quick" if args.quick else "large" if args.large else "full")
     load0 = os.getloadavg()
-    cases = make_inputs(folder, args.quick)
-    peers = [] if args.no_peers else [("Open3D Poisson d8 (+normals)", "poisson", 8), ("Open3D Poisson d9 (+normals)", "poisson", 9)]
-    if not args.no_peers and have_ferreus():
-        peers.append(("ferreus_rbf linear (+marching tets)", "ferreus", None))
+    help_seconds = timed(o3drbf_command() + ["--help"], env=env)["seconds"]
     rows = []
     for case in cases:
-        out = folder / (Path(case["input"]).stem + "_o3drbf.ply")
-        r = timed(o3drbf_command() + ["reconstruct", str(case["input"]), "-o", str(out)] + case["args"], env=env)
-        if r["rc"] != 0:
-            print(r["err"], file=sys.stderr)
-        detail = "; ".join(x for x in (summary_field(r["out"], "solve"), summary_field(r["out"], "mesh")) if x)
-        rows.append((case["name"], "o3drbf reconstruct", r, None, detail))
-        base = r["seconds"]
-        for label, kind, arg in peers:
-            pout = folder / (Path(case["input"]).stem + f"_{kind}{arg or ''}.ply")
-            a = str(arg if arg is not None else case["count"])
-            pr = timed([sys.executable, str(Path(__file__).resolve()), "--peer", kind, str(case["points"]), a, str(pout)], env=env)
-            if pr["rc"] != 0:
-                print(pr["err"], file=sys.stderr)
-            info = pr["out"].strip().splitlines()[-1] if pr["rc"] == 0 and pr["out"].strip() else "failed"
-            rows.append((case["name"], label, pr, base, info))
+        rows += run_case(case, folder, env, peers=not args.no_peers)
+        print(f"  {case['name']}: " + ", ".join(f"{r['tool']} {r['seconds']:.1f} s" for r in rows if r["case"] == case["name"]),
+              flush=True)
     load1 = os.getloadavg()
-    print(f"\nload average at start {load0[0]:.2f} / {load0[1]:.2f} / {load0[2]:.2f}, "
-          f"at end {load1[0]:.2f} / {load1[1]:.2f} / {load1[2]:.2f}; {os.cpu_count()} cores; inputs in {folder}\n")
-    print("| case | tool | seconds | peak GB | time / o3drbf | notes |")
-    print("|---|---|---|---|---|---|")
-    for name, tool, r, base, info in rows:
-        ratio = "1" if base is None else f"{r['seconds'] / base:.2f}"
-        status = "" if r["rc"] == 0 else f" (exit {r['rc']})"
-        print(f"| {name} | {tool}{status} | {r['seconds']:.1f} | {r['gb']:.2f} | {ratio} | {info} |")
+    threads = env.get("OMP_NUM_THREADS", "unset")
+    head = (f"load average at start {load0[0]:.2f} / {load0[1]:.2f} / {load0[2]:.2f}, at end {load1[0]:.2f} / "
+            f"{load1[1]:.2f} / {load1[2]:.2f}; {os.cpu_count()} cores; OMP_NUM_THREADS {threads}; inputs in {folder}")
+    text = tables(rows, help_seconds)
+    print(f"\n{head}\n\n{text}")
+    if args.record:
+        args.record.parent.mkdir(parents=True, exist_ok=True)
+        record = {"date": time.strftime("%Y-%m-%d %H:%M"), "machine": {"cores": os.cpu_count(), "platform": platform.platform(),
+                  "load_start": load0, "load_end": load1, "omp_threads": threads},
+                  "help_seconds": help_seconds, "rows": rows, "tables": text}
+        args.record.write_text(json.dumps(record, indent=1))
     return 0
 
 

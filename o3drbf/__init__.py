@@ -15,7 +15,11 @@ read -> register (scans with cameras) -> outliers -> constraints -> parameters -
 (-> confidence and trim, when asked).
 """
 
-from o3drbf.constraints.core import Constraints
+from o3drbf.startup import defer_open3d_plotly
+
+defer_open3d_plotly()  # before anything imports open3d (see o3drbf.startup)
+
+from o3drbf.constraints.core import Constraints  # noqa: E402
 from o3drbf.extract import extract_mesh
 from o3drbf.options import DEFAULTS, Options
 from o3drbf.pipeline import (

@@ -24,9 +24,11 @@ __all__ = ["extract_mesh", "evaluate_grid", "refine_on_edges", "grid_for", "mesh
 #: tabulated sum (3,064 centres, 300,000 targets: 1.2-1.8 s vs 10-13 s, loaded
 #: machine).
 GRID_EVALUATION_MIN = 1000
-#: Relative tolerance of the grid sums used for meshing (measured max error
-#: ~1e-7 of max |f|: far below what moves a vertex).
-MESH_EPS = 1e-6
+#: Relative tolerance of the grid sums used for meshing, a fraction of max |f|.
+#: A value error e moves a vertex by e / |grad f| (a tiny fraction of a cell
+#: here) and turns a normal by about 10 e (the grid's gradients are an order
+#: less accurate than its values); tighter tolerances cost a larger stencil.
+MESH_EPS = 1e-4
 
 
 def grid_for(bounds, resolution: int | None = 128, voxel_size: float | None = None, multiple: int = 1):
@@ -404,11 +406,17 @@ def extract_mesh(
     # f > 0 inside: skimage winds its triangles to face up the gradient (inward); flip them
     # so triangles face outward, like the vertex normals (positive signed volume).
     faces = np.ascontiguousarray(faces[:, ::-1])
-    if refine:
-        verts = refine_on_edges(func, verts / h, vals, origin, h, level) * h
+    g = None
+    if refine:  # the last step's evaluation also gives the normals' gradients
+        if normals == "exact":
+            verts, g = refine_on_edges(func, verts / h, vals, origin, h, level, gradient=True)
+        else:
+            verts = refine_on_edges(func, verts / h, vals, origin, h, level)
+        verts = verts * h
     verts_box = verts + origin
     if normals == "exact":
-        _, g = func(verts_box, gradient=True)
+        if g is None:
+            _, g = func(verts_box, gradient=True)
         glen = np.linalg.norm(g, axis=1, keepdims=True)
         vnormals = np.where(glen > 0, -g / np.where(glen > 0, glen, 1), grid_normals)
     else:
@@ -429,7 +437,8 @@ def extract_mesh(
 _REFINE_GAP = 0.1
 
 
-def refine_on_edges(func, verts, vals, origin, h: float, level: float = 0.0, steps: int = 3, first_node=None) -> np.ndarray:
+def refine_on_edges(func, verts, vals, origin, h: float, level: float = 0.0, steps: int = 3, first_node=None,
+                    gradient: bool = False):
     """Marching-cubes vertices moved along their grid edges onto f = ``level``.
 
     Marching cubes puts a vertex where the straight line between the two
@@ -461,15 +470,22 @@ def refine_on_edges(func, verts, vals, origin, h: float, level: float = 0.0, ste
         Index coordinates of ``vals[0, 0, 0]`` when ``verts`` and ``origin``
         refer to a larger lattice (a tile of :func:`o3drbf.tiles.extract.extract_tiled`:
         positions then do not depend on where the tile starts); default 0.
+    gradient : bool
+        Also return grad f at the vertices: from the last step's evaluation
+        (``func(points, gradient=True)``), where the vertex was before that
+        step's final update, and from one more evaluation for any vertex not
+        refined.
 
     Returns
     -------
     (V, 3) ndarray
         The vertices, in grid index units.
+    (V, 3) ndarray
+        With ``gradient``: grad f at them (box units).
     """
     v = np.array(verts, dtype=float)
     if not len(v):
-        return v
+        return (v, np.zeros((0, 3))) if gradient else v
     whole = np.rint(v)
     rows = np.arange(len(v))
     axis = np.argmax(np.abs(v - whole), axis=1)
@@ -491,10 +507,16 @@ def refine_on_edges(func, verts, vals, origin, h: float, level: float = 0.0, ste
     # pulled next to one corner make slivers that Open3D's self-intersection test flags.
     lo, hi = np.minimum(t, _REFINE_GAP), np.maximum(t, 1.0 - _REFINE_GAP)
     kept_b = np.zeros(len(t), dtype=bool)
-    for _ in range(int(steps)):
+    grads = np.full((len(v), 3), np.nan) if gradient else None
+    for step in range(int(steps)):
         p = a.astype(float)
         p[np.arange(len(p)), axis] += t
-        ft = np.asarray(func(origin + p * h), dtype=float).reshape(-1) - level
+        if gradient and step == int(steps) - 1:
+            ft, g = func(origin + p * h, gradient=True)
+            grads[rows] = g
+        else:
+            ft = func(origin + p * h)
+        ft = np.asarray(ft, dtype=float).reshape(-1) - level
         same_as_a = (ft < 0) == (fa < 0)
         # Illinois: the end kept twice running has its value halved, so the bracket closes from both sides
         # (marching cubes' own interpolation counts as a step that kept a).
@@ -506,7 +528,12 @@ def refine_on_edges(func, verts, vals, origin, h: float, level: float = 0.0, ste
         t = ta + (tb - ta) * fa / (fa - fb)
         t = np.clip(t, lo, hi)
     v[rows, axis] = start + t
-    return v
+    if not gradient:
+        return v
+    missing = np.flatnonzero(np.isnan(grads[:, 0]))
+    if len(missing):
+        grads[missing] = func(origin + v[missing] * h, gradient=True)[1]
+    return v, grads
 
 
 #: Smallest |f| kept at a grid point, as a fraction of the typical change of f

@@ -122,7 +122,7 @@ AUTO_SIZES = {
     "noisy_full_rate_max": 10000,  # noisy (denoised) scans: points / 3 up to this many, ...
     "noisy_points_per_constraint": 6,  # ... else points / 6 (at least the count above)
     "cells_per_spacing": 2.5,  # marching-cubes cells per constraint spacing ...
-    "min_resolution": 128,
+    "min_resolution": 64,
     "max_resolution": 256,
 }
 
@@ -479,7 +479,7 @@ class ExtractOptions:
     ----------
     resolution : int or "auto"
         Cells along the longest side; "auto": :func:`auto_resolution` (2.5
-        cells per surface-constraint spacing, between 128 and 256).
+        cells per surface-constraint spacing, within ``AUTO_SIZES["min_resolution"]`` and ``["max_resolution"]``).
     voxel_size : float or None
         Grid spacing in data units (overrides ``resolution``).
     bounds : (2, 3) array_like or None

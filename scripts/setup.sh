@@ -36,4 +36,9 @@ if [ ! -f .venv/.installed ] || [ pyproject.toml -nt .venv/.installed ]; then
   touch .venv/.installed
 fi
 .venv/bin/python -c "import open3d, o3drbf" || { echo "setup: ERROR: 'import open3d, o3drbf' failed in .venv (see above)"; exit 1; }
+# Compile the Numba kernels into their cache once (again after a source change), so no run pays for it.
+if [ ! -f .venv/.warmed ] || [ -n "$(find o3drbf -name '*.py' -newer .venv/.warmed -print -quit)" ]; then
+  echo "setup: compiling o3drbf's kernels (once)"
+  .venv/bin/python scripts/warm_up.py && touch .venv/.warmed
+fi
 echo "setup: ready (.venv)"

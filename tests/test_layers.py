@@ -44,7 +44,7 @@ def test_an_upward_import_breaks_the_layers(tmp_path):
     # instead of the bottom: its users now import upward and the tool says so.
     text = (ROOT / "pyproject.toml").read_text()
     moved = text.replace('"o3drbf.cli",\n', '"o3drbf.validation",\n    "o3drbf.cli",\n', 1).replace(
-        '"o3drbf.validation | o3drbf.progress"', '"o3drbf.progress"', 1
+        '"o3drbf.validation | o3drbf.progress | o3drbf.startup"', '"o3drbf.progress | o3drbf.startup"', 1
     )
     assert moved != text
     config = tmp_path / "pyproject.toml"

@@ -20,7 +20,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from o3drbf.io.files import MESH_FORMATS
-from o3drbf.options import DEFAULTS, whole_number
+from o3drbf.options import AUTO_SIZES, DEFAULTS, whole_number
 
 __all__ = ["main", "build_parser", "check_reconstruct_files", "tiled_summary"]
 
@@ -84,7 +84,8 @@ def add_option_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--solver", default=d["solver"], choices=list(SOLVER_METHODS),
                    help="auto: dense up to a few thousand constraints, fast above (default %(default)s)")
     g.add_argument("--resolution", type=count_or_auto, default=d["resolution"], metavar="auto|N",
-                   help="marching-cubes cells along the longest side; auto: 2.5 per constraint spacing, 128 to 256 (default %(default)s)")
+                   help=f"marching-cubes cells along the longest side; auto: {AUTO_SIZES['cells_per_spacing']:g} per constraint spacing, "
+                   f"{AUTO_SIZES['min_resolution']} to {AUTO_SIZES['max_resolution']} (default %(default)s)")
     g.add_argument("--voxel-size", type=float, default=d["voxel_size"], help="grid spacing in data units (overrides --resolution)")
     g = parser.add_argument_group("confidence (off by default)")
     g.add_argument("--confidence", action="store_true", default=d["confidence"],
@@ -143,6 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--cameras", metavar="FILE", help="cameras that saw the points (JSON, Middlebury *_par.txt, COLMAP folder, "
                    "bundle.out, .conf): exterior constraints go toward them and points in their observed free space are outliers")
     g.add_argument("--save-model", metavar="FILE.npz", help="also save the implicit function (evaluate it later with o3drbf.ImplicitSurface.load)")
+    g.add_argument("--report", metavar="FILE.json", help="also write the closing summary as JSON: counts, parameters, seconds and peak memory per stage")
     g.add_argument("--seed", type=_non_negative_int, default=0, help="seed for every random choice (default %(default)s)")
     g.add_argument("--no-color", action="store_true", help="do not colour the mesh from the input points' colours (used when the input has colours)")
     g.add_argument("-q", "--quiet", action="store_true", help="no progress bars or summary")
@@ -262,9 +264,37 @@ def _reconstruct(args) -> int:
     from o3drbf.pipeline import StageTiming, peak_rss_mb
 
     result.report.stages.append(StageTiming("write", time.perf_counter() - t_write, peak_rss_mb()))
+    if args.report:
+        write_report(args.report, result.report, time.perf_counter() - t0)
     if not args.quiet:
         print(summary(result, data.points, args.input, out, args.save_model, time.perf_counter() - t0))
     return 0
+
+
+def write_report(path, report, seconds: float) -> None:
+    """The report of a run as JSON (NaN as null), ``total_seconds`` from the command's start, written atomically."""
+    import json
+    import math
+
+    from o3drbf.io.files import atomic_path
+
+    def clean(x):
+        if isinstance(x, float):
+            return x if math.isfinite(x) else None
+        if isinstance(x, dict):
+            return {str(k): clean(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [clean(v) for v in x]
+        if hasattr(x, "tolist"):
+            return clean(x.tolist())
+        return x if x is None or isinstance(x, (bool, int, str)) else str(x)
+
+    data = report.as_dict()
+    if data.get("robust"):
+        data["robust"].pop("constraints", None)  # arrays, not a summary
+    data["command_seconds"] = seconds
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text(json.dumps(clean(data), indent=1))
 
 
 def _mapped_input(path):
@@ -550,7 +580,10 @@ def check_reconstruct_files(args: argparse.Namespace, points=None) -> "Path":
     model = getattr(args, "save_model", None)
     if model and Path(model).suffix != ".npz":
         raise ValueError(f"--save-model must end in .npz, got {model!r}")
-    io.check_outputs([out, model], [args.input, getattr(args, "cameras", None)])
+    report = getattr(args, "report", None)
+    if report and Path(report).suffix.lower() != ".json":
+        raise ValueError(f"--report must end in .json, got {report!r}")
+    io.check_outputs([out, model, report], [args.input, getattr(args, "cameras", None)])
     if points is not None:
         io.check_mesh_precision(out, points)
     return out

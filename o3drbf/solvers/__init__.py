@@ -27,7 +27,7 @@ import numpy as np
 
 from o3drbf.rbf.kernels import Kernel
 from o3drbf.rbf.sums import polynomial_basis
-from o3drbf.solvers.base import (ConvergenceWarning, Solution, available_memory, dense_memory, gigabytes, memory_limit_or_default,
+from o3drbf.solvers.base import (RESIDUAL_ROWS, ConvergenceWarning, Solution, available_memory, dense_memory, gigabytes, memory_limit_or_default,
                                  relative_residual)
 from o3drbf.solvers.dense import DENSE_MAX, DenseFactor, solve_dense
 from o3drbf.solvers.iterative import solve_gmres
@@ -303,8 +303,9 @@ class Refitter:
         if self.factor is not None and int((lam != self.smoothing).sum()) <= self.max_changed:
             w, p, changed = self.factor.solve(self.values, lam)
             residual = self.factor.residual(self.values, lam, w, p)
-            if not changed:  # the factorization itself, checked once against the kernel's own sums
-                residual = relative_residual(self.kernel, self.centres, self.values, lam, self.q, w, p)
+            if not changed:  # the factorization itself, checked once against the kernel's own sums (at sampled rows)
+                residual = max(residual, relative_residual(self.kernel, self.centres, self.values, lam, self.q, w, p,
+                                                           rows=RESIDUAL_ROWS))
             w = w[keep]
             if residual <= DENSE_RESIDUAL_WARN:
                 info = {"factorization": "cholesky"}

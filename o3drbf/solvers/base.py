@@ -11,7 +11,7 @@ import numpy as np
 from o3drbf.rbf.sums import kernel_sum
 
 __all__ = ["Solution", "ConvergenceWarning", "available_memory", "memory_limit_or_default", "dense_memory", "relative_residual",
-           "gigabytes"]
+           "RESIDUAL_ROWS", "gigabytes"]
 
 
 class ConvergenceWarning(UserWarning):
@@ -99,9 +99,38 @@ def gigabytes(x: float) -> str:
     return f"{x / 2**30:.1f} GB"
 
 
-def relative_residual(kernel, centres, y, lam, q, w, p) -> float:
-    """|| [Phi w + lambda w + Q p - y ; Q^T w] || / ||y|| (matrix-free)."""
-    r1 = kernel_sum(kernel, centres, w, centres) + lam * w + q @ p - y
+#: Rows at which :func:`relative_residual` measures ``Phi w`` by default (all of them below this).
+RESIDUAL_ROWS = 2000
+
+
+def relative_residual(kernel, centres, y, lam, q, w, p, rows: int | None = None, seed: int = 0) -> float:
+    """|| [Phi w + lambda w + Q p - y ; Q^T w] || / ||y||, matrix-free, from the kernel's own sums.
+
+    Parameters
+    ----------
+    kernel : Kernel
+    centres : (N, 3) ndarray
+    y, lam : (N,) ndarray
+    q : (N, M) ndarray
+    w : (N,) ndarray
+    p : (M,) ndarray
+    rows : int, optional
+        Measure the first block at this many rows drawn at random (seeded)
+        and scale its norm by ``sqrt(N / rows)``: an unbiased estimate of
+        the whole at ``rows / N`` of the cost.  Default: every row.
+    seed : int
+
+    Returns
+    -------
+    float
+    """
+    n = len(centres)
+    if rows is not None and rows < n:
+        idx = np.sort(np.random.default_rng(seed).choice(n, int(rows), replace=False))
+        lam_i = lam[idx] if np.ndim(lam) else lam
+        r1 = (kernel_sum(kernel, centres, w, centres[idx]) + lam_i * w[idx] + q[idx] @ p - y[idx]) * math.sqrt(n / len(idx))
+    else:
+        r1 = kernel_sum(kernel, centres, w, centres) + lam * w + q @ p - y
     r2 = q.T @ w
     denom = max(float(np.linalg.norm(y)), np.finfo(float).tiny)
     return float(math.sqrt(float(r1 @ r1 + r2 @ r2)) / denom)

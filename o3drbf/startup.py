@@ -1,0 +1,71 @@
+"""Start-up: Open3D's Plotly/Dash helpers loaded when first used, not at ``import open3d``.
+
+``import open3d`` (0.17-0.19) imports ``open3d.visualization.draw_plotly``,
+which imports Dash and Plotly, for three functions o3drbf never calls; that is
+much of the import's time.  :func:`defer_open3d_plotly` puts a stand-in for
+that module in ``sys.modules`` before Open3D is imported: the stand-in's
+functions (and any other attribute) import the real module on first use, so
+``open3d.visualization.draw_plotly(...)`` still works in a program that also
+imports o3drbf.  Nothing is done when Open3D is already imported.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+import types
+
+__all__ = ["defer_open3d_plotly", "PLOTLY_MODULE"]
+
+#: The Open3D module that imports Dash and Plotly.
+PLOTLY_MODULE = "open3d.visualization.draw_plotly"
+_FUNCTIONS = ("get_plotly_fig", "draw_plotly", "draw_plotly_server")
+
+
+def _real():
+    """Import the real module in place of the stand-in (once), and point ``open3d.visualization`` at it."""
+    module = sys.modules.get(PLOTLY_MODULE)
+    if module is not None and not getattr(module, "__o3drbf_stand_in__", False):
+        return module
+    sys.modules.pop(PLOTLY_MODULE, None)
+    real = importlib.import_module(PLOTLY_MODULE)
+    package = sys.modules.get("open3d.visualization")
+    if package is not None:
+        for name in _FUNCTIONS:
+            if hasattr(real, name):
+                setattr(package, name, getattr(real, name))
+    return real
+
+
+def _forward(name: str):
+    def call(*args, **kwargs):
+        return getattr(_real(), name)(*args, **kwargs)
+
+    call.__name__ = name
+    call.__doc__ = f"Open3D's ``{name}`` (its module imported on first call)."
+    return call
+
+
+def defer_open3d_plotly() -> bool:
+    """Install the stand-in for :data:`PLOTLY_MODULE` unless Open3D is already imported.
+
+    Returns
+    -------
+    bool
+        Whether the stand-in was installed.
+    """
+    if "open3d" in sys.modules or PLOTLY_MODULE in sys.modules:
+        return False
+    stand_in = types.ModuleType(PLOTLY_MODULE, "Stand-in: the real module is imported on first use.")
+    stand_in.__o3drbf_stand_in__ = True
+    for name in _FUNCTIONS:
+        setattr(stand_in, name, _forward(name))
+
+    def attribute(name: str):
+        if name.startswith("__"):  # the import system's own probes (__path__, __spec__...) must not load it
+            raise AttributeError(name)
+        return getattr(_real(), name)
+
+    stand_in.__getattr__ = attribute
+    sys.modules[PLOTLY_MODULE] = stand_in
+    return True

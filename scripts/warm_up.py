@@ -1,0 +1,44 @@
+"""Compile o3drbf's Numba kernels once, into their on-disk cache, so a user's first run does not pay for it.
+
+Run by ``scripts/setup.sh`` after installing (and again whenever a source file changed):
+two small reconstructions on the command line's path, points with normals and a range
+scan with cameras, written into a temporary folder and thrown away.
+
+    python scripts/warm_up.py
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+
+def main() -> int:
+    t0 = time.perf_counter()
+    from o3drbf.cli import main as cli
+    from o3drbf.io.files import write_points
+    from o3drbf.synthetic.scans import range_scans, write_scan_json
+    from o3drbf.synthetic.shapes import Torus
+
+    import open3d as o3d
+
+    with tempfile.TemporaryDirectory(prefix="o3drbf-warm-up-") as tmp:
+        folder = Path(tmp)
+        points, normals = Torus().sample(1500, seed=0)
+        cloud = write_points(folder / "torus.ply", points, normals)
+        mesh = o3d.geometry.TriangleMesh.create_torus(torus_radius=0.7, tube_radius=0.25, radial_resolution=40, tubular_resolution=20)
+        scan_points, owner, cameras = range_scans(mesh, n_views=3, width=80, height=60, seed=0)
+        scan = write_scan_json(folder / "scan.json", scan_points, cameras, point_camera=owner)
+        for source in (cloud, scan):
+            code = cli(["reconstruct", str(source), "-o", str(folder / "mesh.ply"), "-q"])
+            if code:
+                print(f"warm-up: reconstruct {source.name} exited {code}", file=sys.stderr)
+                return code
+    print(f"warm-up: compiled kernels cached in {time.perf_counter() - t0:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,65 @@
+"""Start-up and machine-readable reports: what a user's first seconds and a benchmark rely on."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from o3drbf.cli.commands import main
+from o3drbf.io.files import write_points
+from o3drbf.synthetic.shapes import Sphere
+
+
+def _python(code: str) -> str:
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return proc.stdout
+
+
+def test_importing_o3drbf_and_open3d_leaves_dash_and_plotly_unloaded_until_used():
+    out = _python(
+        "import sys, o3drbf, open3d\n"
+        "print('dash' in sys.modules, 'plotly' in sys.modules)\n"
+        "from o3drbf.startup import PLOTLY_MODULE\n"
+        "stand_in = sys.modules[PLOTLY_MODULE]\n"
+        "go = stand_in.go  # first use: the real module\n"
+        "real = sys.modules[PLOTLY_MODULE]\n"
+        "print('dash' in sys.modules, real is not stand_in, open3d.visualization.draw_plotly is real.draw_plotly,\n"
+        "      getattr(real, '__o3drbf_stand_in__', False))\n"
+    )
+    assert out.split() == ["False", "False", "True", "True", "True", "False"], out
+
+
+def test_open3d_imported_first_is_left_alone():
+    out = _python(
+        "import sys, open3d, o3drbf\n"
+        "from o3drbf.startup import PLOTLY_MODULE, defer_open3d_plotly\n"
+        "print('dash' in sys.modules, defer_open3d_plotly(), getattr(sys.modules[PLOTLY_MODULE], '__o3drbf_stand_in__', False))\n"
+    )
+    assert out.split() == ["True", "False", "False"], out
+
+
+def test_report_json_has_the_summary_and_every_stage(tmp_path):
+    p, n = Sphere(1.0).sample(1200, seed=3)
+    write_points(tmp_path / "sphere.ply", p, n)
+    report = tmp_path / "run.json"
+    assert main(["reconstruct", str(tmp_path / "sphere.ply"), "-o", str(tmp_path / "m.ply"), "-q", "--report", str(report)]) == 0
+    data = json.loads(report.read_text())
+    names = [s["name"] for s in data["stages"]]
+    assert names[0] == "read" and names[-1] == "write" and {"fit", "extract"} <= set(names)
+    assert all(s["seconds"] >= 0 and s["peak_mb"] > 0 for s in data["stages"])
+    assert data["points"] == 1200 and data["surface_constraints"] > 0 and data["triangles"] > 0
+    assert data["command_seconds"] >= sum(s["seconds"] for s in data["stages"])
+
+
+@pytest.mark.parametrize("name", ["run.txt", "sphere.ply"])
+def test_report_must_be_a_new_json_file(tmp_path, capsys, name):
+    p, n = Sphere(1.0).sample(300, seed=3)
+    write_points(tmp_path / "sphere.ply", p, n)
+    before = (tmp_path / "sphere.ply").read_bytes()
+    code = main(["reconstruct", str(tmp_path / "sphere.ply"), "-o", str(tmp_path / "m.ply"), "--report", str(tmp_path / name)])
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and ("--report" in err[0] or "input" in err[0]), err
+    assert (tmp_path / "sphere.ply").read_bytes() == before and not (tmp_path / "m.ply").exists()
