@@ -594,9 +594,13 @@ def ply_header(path: str | os.PathLike) -> dict:
 
 
 def point_count(path: str | os.PathLike) -> int | None:
-    """Points a PLY file's header announces (without reading them); None for other formats, unreadable
-    headers or a file shorter than its header announces (the reader then names the problem)."""
+    """Points a PLY, LAS, LAZ or E57 file's header announces (without reading them); None for other formats,
+    unreadable headers or a PLY shorter than its header announces (the reader then names the problem)."""
     path = Path(path)
+    from o3drbf.io.lidar import LIDAR_FORMATS, lidar_point_count
+
+    if path.suffix.lower() in LIDAR_FORMATS:
+        return lidar_point_count(path)
     if path.suffix.lower() != ".ply" or not path.is_file():
         return None
     try:
@@ -643,7 +647,7 @@ def open_ply_vertices(path: str | os.PathLike) -> PlyVertices:
 
 
 def read_points(path: str | os.PathLike):
-    """Read a point cloud file (PLY, PCD, XYZ, XYZN, XYZRGB, PTS).
+    """Read a point cloud file (PLY, PCD, XYZ, XYZN, XYZRGB, PTS; LAS and LAZ with :func:`o3drbf.io.lidar.read_las`).
 
     Returns
     -------
@@ -667,8 +671,14 @@ def read_points(path: str | os.PathLike):
     if path.is_dir():
         raise ValueError(f"input {path} is a folder; give a point cloud file ({', '.join(POINT_FORMATS)})")
     suffix = path.suffix.lower()
+    from o3drbf.io.lidar import LAS_FORMATS, read_las
+
+    if suffix in LAS_FORMATS:
+        points, colors = read_las(path)
+        return points, None, colors
     if suffix not in POINT_FORMATS:
-        raise ValueError(f"cannot read {path}: unsupported extension {path.suffix!r}; valid: {', '.join(POINT_FORMATS)}")
+        raise ValueError(f"cannot read {path}: unsupported extension {path.suffix!r}; valid: {', '.join(POINT_FORMATS + LAS_FORMATS)} "
+                         "(and .e57 as an input with its scans)")
     try:
         with open(path, "rb") as fh:
             fh.read(1)
