@@ -17,12 +17,14 @@ from pathlib import Path
 import numpy as np
 
 import o3drbf.cameras.model  # noqa: F401  (registers the files camera inputs refer to, for output checks)
+from o3drbf.io.lidar import LAS_FORMATS
 from o3drbf.validation import as_points, as_vectors
 
 __all__ = ["PointSet", "read_input", "CAMERA_INPUTS"]
 
-#: Inputs that hold points *and* cameras (a folder is a COLMAP model).
-CAMERA_INPUTS = (".conf", ".out", ".json")
+#: Inputs that hold points *and* cameras (a folder is a COLMAP model; an E57
+#: file's scans have scanner poses).
+CAMERA_INPUTS = (".conf", ".out", ".json", ".e57")
 
 
 @dataclass(frozen=True, eq=False)
@@ -190,9 +192,11 @@ def read_input(path: str | os.PathLike, cameras: str | os.PathLike | None = None
     ----------
     path : path
         A point cloud file (PLY, PCD, XYZ, XYZN, XYZRGB, PTS: normals and
-        colours used when present), or a file holding points and cameras:
-        a Stanford ``.conf`` (range scans), a COLMAP text folder, a Bundler
-        ``bundle.out`` or an o3drbf scan ``.json``.
+        colours used when present; LAS and LAZ lidar points, read in chunks),
+        or a file holding points and cameras: a Stanford ``.conf`` (range
+        scans), a COLMAP text folder, a Bundler ``bundle.out``, an o3drbf
+        scan ``.json``, or an E57 file (one scanner per scan pose;
+        :func:`o3drbf.cameras.lidar.load_e57`).
     cameras : path, optional
         Cameras that saw the points (any format :func:`o3drbf.cameras.model.load_cameras` reads).
         Refused when ``path`` already holds cameras.
@@ -216,7 +220,14 @@ def read_input(path: str | os.PathLike, cameras: str | os.PathLike | None = None
         if cams.points is None or len(cams.points) == 0:
             raise ValueError(f"{p} holds cameras but no points; give a point cloud as INPUT and this file as --cameras")
         colors = getattr(cams, "colors", None)
+        if not len(cams):  # an E57 file without any scan pose: points only
+            return PointSet.create(cams.points, None, colors=colors, source=str(p), min_count=min_count)
         return PointSet.create(cams.points, None, cameras=cams, point_camera=cams.point_camera, colors=colors,
                                source=str(p), min_count=min_count)
+    if p.suffix.lower() in LAS_FORMATS:
+        from o3drbf.io.lidar import read_las
+
+        points, colors = read_las(p)
+        return PointSet.create(points, None, cameras=cameras, colors=colors, source=str(p), min_count=min_count)
     points, normals, colors = files.read_points(p)
     return PointSet.create(points, normals, cameras=cameras, colors=colors, source=str(p), min_count=min_count)

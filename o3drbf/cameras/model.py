@@ -7,8 +7,11 @@ A :class:`Camera` is one of three kinds of sensor:
     ``pixel ~ K @ x_cam`` (OpenCV convention: +z forward, x right, y down,
     pixel origin at the top-left corner of the image, continuous coordinates).
 ``"center"``
-    Only the position is known (``{"centers": [...]}``): it sees in every
-    direction, and free space is the segment toward the centre.
+    A sensor at a point that sees in every direction: a position only
+    (``{"centers": [...]}``) or a terrestrial scanner at its pose (E57 scans,
+    :meth:`Camera.from_pose`).  Free space is the segment toward the centre;
+    its image is spherical (:meth:`Camera.spherical`: azimuth and elevation
+    about its own axes, the range as depth).
 ``"direction"``
     An orthographic sensor that looks along one direction, like a sweeping
     line scanner (the Stanford range scans): it has no centre, and its free
@@ -28,6 +31,7 @@ COLMAP                 text model folder: ``cameras.txt``, ``images.txt``,
                        ``points3D.txt``
 Bundler                ``bundle.out`` (v0.3)
 Stanford range scans   ``*.conf``: ``bmesh file tx ty tz qx qy qz qw``
+E57 lidar scans        ``*.e57``: scans with poses (:mod:`o3drbf.cameras.lidar`)
 =====================  =====================================================
 
 Each returns a :class:`CameraSet`: the cameras, plus the points and which
@@ -197,6 +201,31 @@ class Camera:
         return cls(R=np.eye(3), t=-c, kind="center", name=name)
 
     @classmethod
+    def from_pose(cls, rotation, translation, name: str = "") -> "Camera":
+        """A terrestrial scanner at a pose, seeing in every direction.
+
+        Parameters
+        ----------
+        rotation : (3, 3) array_like
+            Scanner-to-world rotation: ``X = rotation @ p_scan + translation``
+            (an E57 scan's pose).
+        translation : (3,) array_like
+            The scanner's position in world coordinates.
+        name : str
+
+        Returns
+        -------
+        Camera
+            A ``"center"`` sensor at ``translation`` whose frame is the
+            scanner's (``to_camera`` gives scan coordinates).
+        """
+        Rs = _rotation(rotation, "rotation")
+        c = np.asarray(translation, dtype=float).reshape(-1)
+        if c.shape != (3,) or not np.isfinite(c).all():
+            raise ValueError(f"translation must be a finite 3-vector, got {np.asarray(translation).tolist()}")
+        return cls(R=Rs.T, t=-Rs.T @ c, kind="center", name=name)
+
+    @classmethod
     def from_direction(cls, direction, name: str = "") -> "Camera":
         """An orthographic sensor looking along ``direction`` (world coordinates)."""
         return cls(R=_frame_looking_along(direction), t=np.zeros(3), kind="direction", name=name)
@@ -306,6 +335,30 @@ class Camera:
         pixels[front, 1] = K[1, 1] * y + K[1, 2]
         return pixels, depth
 
+    def spherical(self, points):
+        """Directions of world points about the sensor, in its own frame.
+
+        Parameters
+        ----------
+        points : (N, 3) array_like
+
+        Returns
+        -------
+        angles : (N, 2) array
+            Azimuth in ``(-pi, pi]`` (about the sensor's z axis, from its x
+            axis) and elevation in ``[-pi/2, pi/2]`` (from its xy plane);
+            NaN for a point at the centre.
+        distance : (N,) array
+            Distance to the centre.
+        """
+        xc = self.to_camera(points)
+        r = np.linalg.norm(xc, axis=1)
+        angles = np.full((len(xc), 2), np.nan)
+        ok = r > 0
+        angles[ok, 0] = np.arctan2(xc[ok, 1], xc[ok, 0])
+        angles[ok, 1] = np.arcsin(np.clip(xc[ok, 2] / r[ok], -1.0, 1.0))
+        return angles, r
+
     def pixel_rays(self, stride: int = 1, unit: bool = False) -> np.ndarray:
         """Rays from the camera centre through pixel centres (pinhole cameras with an image size).
 
@@ -400,6 +453,8 @@ class Camera:
         """JSON-ready description (the format :func:`load_cameras` reads)."""
         if self.kind == "center":
             out = {"kind": "center", "center": self.center.tolist()}
+            if not np.array_equal(self.R, np.eye(3)):  # a scanner's orientation
+                out["R"] = self.R.tolist()
         else:
             out = {"R": self.R.tolist(), "t": self.t.tolist()}
             if self.kind == "pinhole":
@@ -422,6 +477,8 @@ class Camera:
         kind = d.get("kind", "pinhole" if "K" in d else None)
         name = str(d.get("name", ""))
         if kind == "center" or (kind is None and "center" in d):
+            if "R" in d:
+                return cls.from_pose(_array(d, "R", (3, 3)).T, _array(d, "center", (3,)), name=name)
             return cls.from_center(_need(d, "center"), name=name)
         if kind == "direction" and "direction" in d:
             return cls.from_direction(d["direction"], name=name)
@@ -1016,7 +1073,7 @@ def _load_stanford(path: Path, read_scans: bool) -> CameraSet:
 
 _FORMATS_HELP = (
     "a .json camera file, a Middlebury *_par.txt, a COLMAP text model folder (cameras.txt, images.txt), "
-    "a Bundler bundle.out, or a Stanford .conf"
+    "a Bundler bundle.out, a Stanford .conf, or an E57 file with scan poses"
 )
 
 
@@ -1042,6 +1099,8 @@ def _detect(path: Path) -> tuple[str, Path]:
         return "json", path
     if name.endswith(".conf"):
         return "stanford", path
+    if name.endswith(".e57"):
+        return "e57", path
     if name in ("cameras.txt", "images.txt", "points3d.txt"):
         return "colmap", path.parent
     if name.endswith("_par.txt"):
@@ -1064,7 +1123,8 @@ def load_cameras(path: str | os.PathLike, image_size: tuple[int, int] | None = N
     path : path-like
         A ``.json`` file, a Middlebury ``*_par.txt``, a COLMAP text model
         folder (or one of its files; ``sparse/0`` is searched too), a Bundler
-        ``bundle.out`` (or its folder), or a Stanford ``.conf``.
+        ``bundle.out`` (or its folder), a Stanford ``.conf``, or an ``.e57``
+        file (its scans' poses and points, :func:`o3drbf.cameras.lidar.load_e57`).
     image_size : (int, int), optional
         ``(width, height)`` for formats that do not store it (Middlebury,
         Bundler) when the images are not beside the file.  Without it the
@@ -1104,6 +1164,10 @@ def load_cameras(path: str | os.PathLike, image_size: tuple[int, int] | None = N
         return _load_colmap(target)
     if kind == "bundler":
         return _load_bundler(target, image_size)
+    if kind == "e57":
+        from o3drbf.cameras.lidar import load_e57
+
+        return load_e57(target)
     return _load_stanford(target, read_scans)
 
 
@@ -1154,7 +1218,7 @@ def referenced_files(path: str | os.PathLike) -> list[Path]:
                         out += [candidate.parent / name, target.parent / name]
                 break
         out.append(target)
-    elif kind == "json":
+    elif kind in ("json", "e57"):
         out.append(target)
     return out
 

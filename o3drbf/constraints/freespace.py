@@ -24,8 +24,11 @@ its own camera only, a genuine point seen by two cameras survives a stray
 conflict.
 
 Cost: one projection per (point, camera), one z-buffer and one KD-tree per
-camera: O(N x cameras) apart from the tree queries.  Centre sensors (no
-image) are skipped.
+camera: O(N x cameras) apart from the tree queries.  A centre sensor (a
+terrestrial scanner) has a spherical image: azimuth and elevation about its
+centre, cells of one spacing at the median range, the range as depth; the
+azimuth is measured from the mean direction of the points so the seam falls
+behind the sensor when they lie to one side.
 """
 
 from __future__ import annotations
@@ -68,7 +71,7 @@ class FreeSpaceCheck:
     spacing : float
         The point spacing used for the z-buffer footprint (data units).
     cameras_used : int
-        Cameras that had a z-buffer (centre sensors and blind cameras are skipped).
+        Cameras that had a z-buffer (blind cameras are skipped).
     reason : str
         One line: what was removed and why.
     parameters : dict
@@ -125,10 +128,26 @@ def _median_spacing(points: np.ndarray, sample: int = 20_000, seed: int = 0) -> 
 
 def _image_coordinates(cam, points: np.ndarray):
     """Image-plane coordinates (N, 2), depth (N,), and the image-plane size of one spacing per unit depth (None: constant)."""
+    if cam.kind == "center":  # spherical image: (azimuth, elevation) in radians, the range as depth
+        angles, depth = cam.spherical(points)
+        ok = np.isfinite(angles).all(axis=1)
+        if ok.any():  # the seam opposite the points' mean azimuth
+            a = angles[ok, 0]
+            mean = np.arctan2(np.sin(a).sum(), np.cos(a).sum())
+            angles[ok, 0] = np.angle(np.exp(1j * (a - mean)))
+        return angles, depth, 1.0
     pix, depth = cam.project(points)
     if cam.kind == "pinhole":
         return pix, depth, 0.5 * (cam.K[0, 0] + cam.K[1, 1])
     return pix, depth, None  # direction sensor: orthographic
+
+
+def _cell(cam, focal, spacing: float, depth: np.ndarray) -> float:
+    """Image cell of one spacing at the median ``depth``: pixels (at least one), radians, or data units."""
+    if focal is None:
+        return spacing
+    size = focal * spacing / float(np.median(depth))
+    return size if cam.kind == "center" else max(1.0, size)
 
 
 def _zbuffer_test(cam, points, seen, spacing, tolerance, empty="unknown"):
@@ -138,10 +157,7 @@ def _zbuffer_test(cam, points, seen, spacing, tolerance, empty="unknown"):
     src = seen & (depth > 0) & np.isfinite(pix).all(axis=1)
     if not src.any():
         return np.zeros(n, dtype=bool), False
-    if focal is None:
-        cell = spacing
-    else:
-        cell = max(1.0, focal * spacing / float(np.median(depth[src])))  # pixels per spacing, at least one pixel
+    cell = _cell(cam, focal, spacing, depth[src])
     front = (depth > 0) & np.isfinite(pix).all(axis=1)
     if cam.kind == "pinhole" and cam.width is not None and cam.height is not None:
         lo = np.zeros(2)
@@ -188,8 +204,6 @@ def _first_layer(cam, points: np.ndarray, spacing: float, tolerance: float, supp
     ``tolerance`` of its cell's nearest depth counts as seen.
     """
     n = len(points)
-    if cam.kind == "center":
-        return np.zeros(n, dtype=bool)
     sup = _supported(points, spacing) if supported is None else supported
     pix, depth, focal = _image_coordinates(cam, points)
     front = (depth > 0) & np.isfinite(pix).all(axis=1)
@@ -199,7 +213,7 @@ def _first_layer(cam, points: np.ndarray, spacing: float, tolerance: float, supp
     use = front & sup
     if not use.any():
         return np.zeros(n, dtype=bool)
-    cell = spacing if focal is None else max(1.0, focal * spacing / float(np.median(depth[use])))
+    cell = _cell(cam, focal, spacing, depth[use])
     lo = pix[front].min(axis=0)
     ij = np.zeros((n, 2), dtype=np.int64)
     ij[front] = np.floor((pix[front] - lo) / cell).astype(np.int64)
@@ -233,8 +247,8 @@ def free_space_check(
     points : (N, 3) array_like
         All input points (data units), outliers included.
     cameras : sequence of Camera
-        The cameras that saw the points (pinhole or direction; centre sensors
-        are skipped).
+        The cameras that saw the points (pinhole, direction, or centre
+        sensors with their spherical image).
     point_camera : (N,) int array_like or (N, C) bool array_like, optional
         The camera that produced each point (-1 unknown), or which cameras
         saw each point.  The z-buffer of camera j is splatted from the points
@@ -303,8 +317,6 @@ def free_space_check(
     radius = tolerance + spacing
     used = 0
     for j, cam in enumerate(cams):
-        if cam.kind == "center":
-            continue
         free, ok = _zbuffer_test(cam, pts, seen[:, j], spacing, tolerance, empty)
         if not ok:
             continue
@@ -315,8 +327,8 @@ def free_space_check(
         confirmations += np.isfinite(d)
     if used == 0:
         raise ValueError(
-            "no camera can hold a z-buffer (centre sensors only, or cameras that saw no point); "
-            "give pinhole or direction cameras, or skip the free-space check"
+            "no camera can hold a z-buffer (the cameras saw no point); "
+            "give the points each camera saw (point_camera), or skip the free-space check"
         )
     outlier = (conflicts >= min_conflicts) & (confirmations <= max_confirmations)
     reason = (
