@@ -29,6 +29,7 @@ __all__ = [
     "UNTILED_MEMORY",
     "untiled_memory",
     "check_untiled_fits",
+    "untiled_fits",
     "count_or_auto",
     "whole_number",
     "CARVE_DEFAULTS",
@@ -180,6 +181,16 @@ def untiled_memory(n_points: int) -> int:
     return int(m["fixed_bytes"] + m["bytes_per_point"] * int(n_points))
 
 
+def untiled_fits(n_points: int, available: int | None = None) -> bool:
+    """Whether the untiled path holds ``n_points`` input points: :func:`untiled_memory` within
+    ``usable_fraction`` of ``available`` bytes (default :func:`o3drbf.solvers.base.available_memory`)."""
+    if available is None:
+        from o3drbf.solvers.base import available_memory
+
+        available = available_memory()
+    return untiled_memory(n_points) <= UNTILED_MEMORY["usable_fraction"] * available
+
+
 def check_untiled_fits(n_points: int | None, available: int | None = None) -> None:
     """Refuse an input too large for the untiled path, suggesting ``--tiles auto``.
 
@@ -204,7 +215,7 @@ def check_untiled_fits(n_points: int | None, available: int | None = None) -> No
 
         available = available_memory()
     need = untiled_memory(n_points)
-    if need > UNTILED_MEMORY["usable_fraction"] * available:
+    if not untiled_fits(n_points, available):
         raise ValueError(f"{int(n_points):,} points need about {need / 2**30:.1f} GiB without tiles but {available / 2**30:.1f} GiB "
                          "are available; pass --tiles auto (tiled reconstruction, points read in chunks)")
 

@@ -130,13 +130,13 @@ def build_parser() -> argparse.ArgumentParser:
     rec = sub.add_parser(
         "reconstruct",
         help="point cloud -> closed mesh",
-        description="Reconstruct a closed mesh from a point cloud (PLY, PCD, XYZ, XYZN, ...). "
+        description="Reconstruct a closed mesh from a point cloud (PLY, PCD, XYZ, XYZN, LAS, LAZ, E57, ...). "
         "Lengths (offsets, radii, delta, tau, lambda) refer to the data normalized into a 2x2x2 box.",
     )
     rec.add_argument(
         "input",
-        help="point cloud file (normals used when present), or a file that holds points and cameras: "
-        "Stanford .conf (range scans), COLMAP text folder, Bundler bundle.out, o3drbf scan .json",
+        help="point cloud file (normals used when present; LAS/LAZ lidar points), or a file that holds points and cameras: "
+        "Stanford .conf (range scans), COLMAP text folder, Bundler bundle.out, o3drbf scan .json, E57 scans with poses",
     )
     rec.add_argument("-o", "--output", required=True, help=f"output mesh ({', '.join(MESH_FORMATS)})")
     add_option_arguments(rec)
@@ -151,7 +151,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("-v", "--verbose", action="store_true", help="log each step")
     g = rec.add_argument_group("tiles (beyond one machine; needs pip install 'o3drbf[tiles]')")
     g.add_argument("--tiles", type=_tiles_value, default=None, metavar="auto|N",
-                   help="tiled reconstruction over N k-d tiles blended by a partition of unity (auto: one per 60,000 points)")
+                   help="tiled reconstruction over N k-d tiles blended by a partition of unity (auto: untiled when the input fits in "
+                   "memory, said in one line; else one tile per 60,000 points)")
     g.add_argument("--scheduler", default=None, metavar="ADDR",
                    help="Dask scheduler address for --tiles (default: a local cluster of --workers processes; 'synchronous': in this process)")
     g.add_argument("--workers", type=_positive_int, default=2, help="workers of the local Dask cluster with --tiles (default %(default)s)")
@@ -236,16 +237,21 @@ def _reconstruct(args) -> int:
     t0 = time.perf_counter()
     options = options_from_args(args).validate()
     out = check_reconstruct_files(args)
+    tiles_auto = args.tiles == "auto"
+    if tiles_auto:
+        _untiled_if_it_fits(args, io.point_count(args.input))  # from the file header, before reading
     if args.tiles is not None and args.cameras is None:
         vertices = _mapped_input(args.input)
         if vertices is not None:  # a binary PLY with normals: never read whole
             check_reconstruct_files(args, vertices.take(0, min(len(vertices), 100_000))[0])
             return _reconstruct_tiled(args, vertices, options, out, t0)
-    if args.tiles is None:
-        from o3drbf.options import check_untiled_fits
+    from o3drbf.options import check_untiled_fits
 
+    if args.tiles is None:
         check_untiled_fits(io.point_count(args.input))  # from the file header, before reading
     data = read_input(args.input, cameras=args.cameras)
+    if tiles_auto and args.tiles is not None:
+        _untiled_if_it_fits(args, len(data.points))
     if args.tiles is None:
         check_untiled_fits(len(data.points))
     check_reconstruct_files(args, data.points)
@@ -297,6 +303,20 @@ def write_report(path, report, seconds: float) -> None:
         Path(tmp).write_text(json.dumps(clean(data), indent=1))
 
 
+def _untiled_if_it_fits(args, n_points) -> None:
+    """``--tiles auto`` on an input the untiled path holds: run untiled (``args.tiles = None``), said in one line."""
+    if n_points is None:
+        return
+    from o3drbf.options import untiled_fits, untiled_memory
+    from o3drbf.solvers.base import available_memory
+
+    available = available_memory()
+    if untiled_fits(n_points, available):
+        log.warning("--tiles auto: %s points fit in memory without tiles (about %.1f GiB of %.1f GiB available): running untiled",
+                    f"{int(n_points):,}", untiled_memory(n_points) / 2**30, available / 2**30)
+        args.tiles = None
+
+
 def _mapped_input(path):
     """The memory-mapped vertices of a binary PLY with normals, else None (read it into memory)."""
     if not str(path).lower().endswith(".ply"):
@@ -323,8 +343,14 @@ def _reconstruct_tiled(args, data, options, out, t0) -> int:
 
     from o3drbf.io.files import PlyVertices
 
+    from dataclasses import replace
+
     p = options.parameters
     mapped = isinstance(data, PlyVertices)
+    if not mapped and data.cameras is not None and args.cameras is None:  # the input's own scanners (E57, .conf, ...)
+        log.warning("--tiles does not use cameras: the %d camera(s) or scanner(s) of %s are left out (no free-space "
+                    "constraints nor free-space outlier check)", len(data.cameras), args.input)
+        data = replace(data, cameras=None, point_camera=None)
     if (not mapped and data.cameras is not None) or p.kernel != "multiorder":
         raise ValueError("--tiles needs points with normals and the multiorder kernel; drop --cameras/--kernel")
     if options.confidence.wanted:
@@ -342,12 +368,35 @@ def _reconstruct_tiled(args, data, options, out, t0) -> int:
     if args.save_model:
         surface.save(args.save_model)
     if not args.quiet:
-        print(tiled_summary(stats, args.input, out, time.perf_counter() - t0, mapped))
+        from o3drbf.mesh.metrics import mesh_report
+
+        print(tiled_summary(stats, args.input, out, time.perf_counter() - t0, mapped, mesh_report(mesh)))
     return 0
 
 
-def tiled_summary(stats: dict, input_path, output_path, seconds: float, mapped: bool = False) -> str:
-    """The closing summary of ``reconstruct --tiles`` (``stats`` from :func:`o3drbf.tiles.run.reconstruct_tiled`)."""
+def _watertight_line(rep: dict) -> str:
+    """The summary's watertight line (from :func:`o3drbf.mesh.metrics.mesh_report`): Open3D's test, topology, pieces."""
+    return (f"  watertight       {'yes' if rep['watertight'] else 'NO'} (Open3D's is_watertight: closed, manifold, "
+            f"{rep['self_intersections'] or 'no'} self-intersecting triangle pair(s)), "
+            f"Euler characteristic {rep['euler_characteristic']}, {rep['components']} component(s)")
+
+
+def tiled_summary(stats: dict, input_path, output_path, seconds: float, mapped: bool = False, report: dict | None = None) -> str:
+    """The closing summary of ``reconstruct --tiles``.
+
+    Parameters
+    ----------
+    stats : dict
+        From :func:`o3drbf.tiles.run.reconstruct_tiled`.
+    input_path, output_path : path-like
+    seconds : float
+        Wall time of the whole command.
+    mapped : bool
+        The points were memory-mapped from the file.
+    report : dict, optional
+        :func:`o3drbf.mesh.metrics.mesh_report` of the mesh: adds the
+        watertight line of the untiled summary.
+    """
     c = stats["constraints"]
     workers = stats["workers"]
     lines = [
@@ -356,6 +405,7 @@ def tiled_summary(stats: dict, input_path, output_path, seconds: float, mapped: 
         f"  tiles            {stats['tiles']}; constraints per tile min {c['min']:,}, median {c['median']:,.0f}, max {c['max']:,}",
         f"  blend overlap    {stats['overlap']:.0%} of each cell's half-size on every side (at least {stats['min_overlap']:g} box units)",
         f"  mesh             {stats['triangles']:,} triangles, {stats['vertices']:,} vertices",
+        *([_watertight_line(report)] if report is not None else []),
         f"  time             fit {stats['fit_seconds']:.1f} s, mesh {stats['extract_seconds']:.1f} s, total {seconds:.1f} s",
         f"  workers          {len(workers)}: " + "; ".join(
             f"{name} {w['tasks']} tasks, {w['seconds']:.1f} s, peak {w['peak_rss'] / 2**30:.2f} GiB" for name, w in workers.items()),
@@ -405,9 +455,7 @@ def summary(result, points, input_path, output_path, model_path=None, seconds=No
         f"  mesh             {s.triangles:,} triangles, {s.vertices:,} vertices"
         + (f", {s.resolution} cells on the longest side" if s.resolution else "") + f", extracted in {s.extract_seconds:.2f} s"
         + (f"; {s.specks_removed} speck(s) under two constraint spacings across removed" if s.specks_removed else ""),
-        f"  watertight       {'yes' if rep['watertight'] else 'NO'} (Open3D's is_watertight: closed, manifold, "
-        f"{rep['self_intersections'] or 'no'} self-intersecting triangle pair(s)), "
-        f"Euler characteristic {rep['euler_characteristic']}, {rep['components']} component(s)",
+        _watertight_line(rep),
         f"  fitness error    mean {fit['mean']:.3g}, RMS {fit['rms']:.3g}, max {fit['max']:.3g} (data units; mean {fit['mean'] * scale:.2e} in the box)",
     ]
     if colored:
