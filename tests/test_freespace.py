@@ -95,8 +95,12 @@ def test_bad_input():
         free_space_check(pts, [cam], np.zeros(20, int), empty="maybe")
     with pytest.raises(ValueError, match="tolerance"):
         free_space_check(pts, [cam], np.zeros(20, int), tolerance=-1.0)
-    with pytest.raises(ValueError, match="no camera can hold"):
-        free_space_check(pts, [Camera.from_center((0, 0, 5))], np.zeros(20, int))
+    with pytest.raises(ValueError, match="no camera can hold"):  # cameras that saw nothing
+        free_space_check(pts, [Camera.from_center((0, 0, 5))], np.full(20, -1))
+    # a centre sensor holds a spherical z-buffer: a point in front of what it saw is in its free space
+    seen = np.vstack([pts, [[0.0, 0.0, 2.0]]])
+    check = free_space_check(seen, [Camera.from_center((0, 0, 5))], np.r_[np.zeros(20, int), -1], tolerance=0.1)
+    assert check.cameras_used == 1
     assert seen_by(np.array([0, -1, 1]), 3, 2).tolist() == [[True, False], [False, False], [False, True]]
 
 

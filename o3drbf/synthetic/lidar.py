@@ -31,7 +31,7 @@ def _yaw(angle: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def terrestrial_scans(mesh, positions, step: float = 1.0, noise: float = 0.0, yaw=None, seed: int = 0):
+def terrestrial_scans(mesh, positions, step: float = 1.0, noise: float = 0.0, outliers: float = 0.0, yaw=None, seed: int = 0):
     """Ray-cast a mesh from terrestrial scanners at ``positions``.
 
     Each scanner sweeps a regular grid of azimuth and elevation angles (in
@@ -47,6 +47,11 @@ def terrestrial_scans(mesh, positions, step: float = 1.0, noise: float = 0.0, ya
         Angular step of the grid in degrees.
     noise : float
         Standard deviation of Gaussian noise along each ray (mesh units).
+    outliers : float in [0, 1)
+        Fraction of the returned points that are spurious returns: on a
+        random scanner's ray that hit the mesh, at a random depth between
+        30% and 97% of the true one (in the free space that scanner saw).
+        They are the last rows.
     yaw : (S,) array_like, optional
         Each scanner's turn about z in degrees (default: seeded random).
     seed : int
@@ -66,12 +71,15 @@ def terrestrial_scans(mesh, positions, step: float = 1.0, noise: float = 0.0, ya
     pos = as_points(positions, name="positions")
     step = np.radians(check_number("step", step, low=0.0, low_open=True))
     noise = check_number("noise", noise, low=0.0)
+    outliers = check_number("outliers", outliers, low=0.0)
+    if outliers >= 1:
+        raise ValueError(f"outliers is a fraction of the points and must be below 1, got {outliers}")
     rng = np.random.default_rng(check_number("seed", seed, low=0, integer=True))
     yaws = rng.uniform(0.0, 360.0, len(pos)) if yaw is None else np.asarray(yaw, dtype=float).reshape(len(pos))
     centre = (v.min(axis=0) + v.max(axis=0)) / 2
     radius = 0.5 * float(np.linalg.norm(v.max(axis=0) - v.min(axis=0)))
     scene = raycasting_scene(v, t)
-    parts, owner, cameras = [], [], []
+    parts, owner, cameras, hits = [], [], [], []
     for k, (p, angle) in enumerate(zip(pos, np.radians(yaws))):
         R = _yaw(angle)  # scanner -> world
         cam = Camera.from_pose(R, p, name=f"scan {k}")
@@ -94,9 +102,23 @@ def terrestrial_scans(mesh, positions, step: float = 1.0, noise: float = 0.0, ya
         parts.append(p + dirs[ok] * depth[:, None])
         owner.append(np.full(int(ok.sum()), k, dtype=np.int64))
         cameras.append(cam)
+        hits.append((dirs[ok], hit[ok]))
     points = np.concatenate(parts)
     if not len(points):
         raise ValueError("no ray hits the mesh; check the scanner positions")
+    n_out = int(round(outliers / (1 - outliers) * len(points)))
+    if n_out:
+        seen = [k for k in range(len(pos)) if len(hits[k][1])]
+        cam_of = rng.choice(seen, size=n_out)
+        extra = np.empty((n_out, 3))
+        for k in seen:
+            sel = np.flatnonzero(cam_of == k)
+            dirs, t_hit = hits[k]
+            ray = rng.integers(0, len(t_hit), size=len(sel))
+            extra[sel] = pos[k] + dirs[ray] * (t_hit[ray] * rng.uniform(0.3, 0.97, size=len(sel)))[:, None]
+        parts.append(extra)
+        owner.append(cam_of.astype(np.int64))
+        points = np.concatenate(parts)
     return points, np.concatenate(owner), cameras
 
 
