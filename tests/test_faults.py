@@ -135,6 +135,145 @@ def test_bad_point_file_is_refused_and_untouched(tmp_path, case):
     assert snapshot(tmp_path) == before and not temporaries(tmp_path)
 
 
+# -- 1b. lidar files (LAS, LAZ, E57) -------------------------------------------------------
+
+
+def _las(t, name="s.las", cut=0):
+    from o3drbf.synthetic.lidar import write_las
+
+    p = write_las(t / name, GOOD_PTS)
+    if cut:
+        data = p.read_bytes()
+        p.write_bytes(data[: len(data) - cut] if cut > 0 else data[:-cut])
+    return p
+
+
+def _e57(t, rotation=(1.0, 0.0, 0.0, 0.0), translation=(0.0, 0.0, 5.0), cut=0, poses=True):
+    """Two scans, 'north' and 'south'; the second gets ``rotation`` and ``translation``."""
+    from o3drbf.synthetic.lidar import write_e57
+
+    scans = [{"name": "north", "points": GOOD_PTS[:10], "rotation": (1.0, 0.0, 0.0, 0.0), "translation": (0.0, 0.0, -5.0)},
+             {"name": "south", "points": GOOD_PTS[10:], "rotation": rotation, "translation": translation}]
+    if not poses:
+        for scan in scans:
+            scan["rotation"] = scan["translation"] = None
+    p = write_e57(t / "scans.e57", scans)
+    if cut:
+        data = p.read_bytes()
+        p.write_bytes(data[: len(data) - cut])
+    return p
+
+
+NAN = float("nan")
+LIDAR_CASES = {
+    "las truncated": (lambda t: _las(t, cut=100), "truncated file"),
+    "las cut inside the header": (lambda t: _las(t, cut=-150), "not a readable LAS file.*truncated or corrupt"),
+    "las empty": (lambda t: put(t / "e.las", b""), "no points"),
+    "las not a las": (lambda t: put(t / "g.las", b"\x89PNG garbage" * 30), "not a readable LAS file"),
+    "laz truncated": (lambda t: _las(t, "s.laz", cut=120), "truncated or corrupt point data"),
+    "e57 truncated": (lambda t: _e57(t, cut=600), "not a readable E57 file.*truncated or corrupt"),
+    "e57 not an e57": (lambda t: put(t / "g.e57", b"garbage" * 200), "not a readable E57 file"),
+    "e57 zero quaternion": (lambda t: _e57(t, rotation=(0.0, 0.0, 0.0, 0.0)), "scan 1 'south': quaternion .* unit quaternion"),
+    "e57 long quaternion": (lambda t: _e57(t, rotation=(1.0, 1.0, 0.0, 0.0)), "scan 1 'south': quaternion .* unit quaternion"),
+}
+#: Poses libe57 cannot store (it writes no NaN and reads an overflowing number as +-DBL_MAX): the
+#: second scan's pose as the header reader returns it.
+BAD_POSES = {
+    "nan rotation": {"rotation": np.array([NAN, 0.0, 0.0, 1.0])},
+    "nan translation": {"translation": np.array([0.0, NAN, 5.0])},
+    "infinite translation": {"translation": np.array([np.inf, 0.0, 5.0])},
+    "overflowed translation": {"translation": np.array([np.finfo(float).max, 0.0, 5.0])},
+}
+
+
+def _poison_second_pose(monkeypatch, change):
+    import dataclasses
+
+    import o3drbf.cameras.lidar as lidar
+
+    real = lidar.e57_scans
+    monkeypatch.setattr(lidar, "e57_scans", lambda path: [s if s.index != 1 else dataclasses.replace(s, **change) for s in real(path)])
+
+
+@pytest.mark.parametrize("case", sorted(LIDAR_CASES))
+def test_bad_lidar_file_is_one_line_and_untouched(tmp_path, case):
+    pytest.importorskip("laspy")
+    pytest.importorskip("pye57")
+    from o3drbf.pointset import read_input
+
+    make, pattern = LIDAR_CASES[case]
+    path = make(tmp_path)
+    before = snapshot(tmp_path)
+    with pytest.raises(ValueError, match=pattern) as info:
+        read_input(path)
+    assert "\n" not in str(info.value) and Path(path).name in str(info.value)
+    assert snapshot(tmp_path) == before and not temporaries(tmp_path)
+
+
+@pytest.mark.parametrize("case", sorted(BAD_POSES))
+def test_e57_scan_with_a_non_finite_pose_is_refused_naming_the_scan(tmp_path, monkeypatch, capsys, case):
+    pytest.importorskip("pye57")
+    from o3drbf.pointset import read_input
+
+    path = _e57(tmp_path)
+    before = snapshot(tmp_path)
+    _poison_second_pose(monkeypatch, BAD_POSES[case])
+    pattern = "scans.e57, scan 1 'south': the pose has NaN or infinite values"
+    with pytest.raises(ValueError, match=pattern) as info:
+        read_input(path)
+    assert "\n" not in str(info.value)
+    assert main(["reconstruct", str(path), "-o", str(tmp_path / "out.ply"), *SMALL]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and pattern in err and "Traceback" not in err
+    assert snapshot(tmp_path) == before and not temporaries(tmp_path)
+
+
+@pytest.mark.parametrize("case", ["las truncated", "laz truncated", "e57 truncated", "e57 zero quaternion"])
+def test_cli_bad_lidar_file_exits_2_and_writes_nothing(tmp_path, capsys, case):
+    pytest.importorskip("laspy")
+    pytest.importorskip("pye57")
+    make, pattern = LIDAR_CASES[case]
+    path = make(tmp_path)
+    before = snapshot(tmp_path)
+    assert main(["reconstruct", str(path), "-o", str(tmp_path / "out.ply"), *SMALL]) == 2
+    err = capsys.readouterr().err.strip()
+    import re
+
+    assert len(err.splitlines()) == 1 and re.search(pattern, err) and "Traceback" not in err
+    assert snapshot(tmp_path) == before and not temporaries(tmp_path)
+
+
+def test_e57_without_poses_is_read_as_points_and_says_so_in_one_line(tmp_path, capsys):
+    pytest.importorskip("pye57")
+    from o3drbf.pointset import read_input
+
+    path = _e57(tmp_path, poses=False)
+    data = read_input(path)
+    assert data.cameras is None and data.point_camera is None
+    np.testing.assert_allclose(data.points, GOOD_PTS, atol=1e-12)  # the file's frame
+    # the command line goes on without free space, says so once, and writes the mesh
+    points, normals = Sphere(1.0).sample(400, seed=4)
+    from o3drbf.synthetic.lidar import write_e57
+
+    write_e57(path, [{"name": "merged", "points": points, "rotation": None, "translation": None}])
+    out = tmp_path / "out.ply"
+    assert main(["reconstruct", str(path), "-o", str(out), *SMALL]) == 0
+    said = [line for line in capsys.readouterr().err.splitlines() if "no pose" in line]
+    assert len(said) == 1 and "'merged'" in said[0] and "no free-space constraints" in said[0]
+    assert o3d.io.read_triangle_mesh(str(out)).is_watertight()
+
+
+@pytest.mark.parametrize("suffix,package", [(".las", "laspy"), (".laz", "lazrs"), (".e57", "pye57")])
+def test_missing_lidar_library_names_the_install(tmp_path, capsys, monkeypatch, suffix, package):
+    path = put(tmp_path / f"scan{suffix}", b"not read")
+    before = snapshot(tmp_path)
+    monkeypatch.setitem(sys.modules, package, None)  # import fails as if not installed
+    assert main(["reconstruct", str(path), "-o", str(tmp_path / "out.ply"), *SMALL]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and f"needs the {package} package" in err and "pip install 'o3drbf[lidar]'" in err
+    assert snapshot(tmp_path) == before and not temporaries(tmp_path)
+
+
 # -- 2. camera files ----------------------------------------------------------------------
 
 CAM = {"K": [[100, 0, 50], [0, 100, 50], [0, 0, 1]], "R": np.eye(3).tolist(), "t": [0, 0, 3], "width": 100, "height": 100}

@@ -147,3 +147,15 @@ def test_cli_tiles_auto_stays_tiled_when_the_input_does_not_fit(scans, tmp_path,
     monkeypatch.setattr(commands, "_reconstruct_tiled", lambda args, data, *a: ran.setdefault("tiles", args.tiles) and 0)
     assert main(["reconstruct", str(scans[3]), "-o", str(tmp_path / "m.ply"), "--tiles", "auto", "-q"]) == 0
     assert ran["tiles"] == "auto" and "running untiled" not in capsys.readouterr().err
+
+
+def test_cli_tiles_on_e57_leaves_the_scanners_out_in_one_line(scans, tmp_path, capsys):
+    out = tmp_path / "m.ply"
+    assert main(["reconstruct", str(scans[3]), "-o", str(out), "--tiles", "2", "--scheduler", "synchronous",
+                 "--resolution", "32"]) == 0
+    captured = capsys.readouterr()
+    said = [line for line in captured.err.splitlines() if "does not use cameras" in line]
+    assert len(said) == 1 and "3 camera(s) or scanner(s)" in said[0]
+    summary = captured.out[captured.out.index("o3drbf reconstruct --tiles:"):]
+    assert "tiles            2;" in summary and "watertight       yes" in summary and "1 component(s)" in summary
+    assert o3d.io.read_triangle_mesh(str(out)).is_watertight()

@@ -163,7 +163,8 @@ def test_tiled_command_reads_a_binary_ply_mapped_and_reports_tiles_and_workers(t
     assert main(args) == 0
     text = capsys.readouterr().out
     for field in ("memory-mapped", "tiles            3; constraints per tile min", "blend overlap    25%",
-                  "workers          1:", "peak"):
+                  "workers          1:", "peak", "watertight       yes (Open3D's is_watertight: closed, manifold, no self-intersecting",
+                  "Euler characteristic 0, 1 component(s)"):
         assert field in text, field
     mesh = o3d.io.read_triangle_mesh(str(out))
     assert mesh.is_watertight() and mesh.euler_poincare_characteristic() == 0

@@ -44,7 +44,9 @@ def scan_camera(path, scan) -> Camera:
     """
     where = f"{path}, scan {scan.index} {scan.name!r}"
     q, t = np.asarray(scan.rotation, dtype=float), np.asarray(scan.translation, dtype=float)
-    if not (np.isfinite(q).all() and np.isfinite(t).all()):
+    values = np.concatenate([q, t])
+    # libe57 reads a number too large for a double as +-DBL_MAX: an overflow, not a position
+    if not (np.isfinite(values) & (np.abs(values) < np.finfo(float).max)).all():
         raise ValueError(f"{where}: the pose has NaN or infinite values (rotation w x y z {q.tolist()}, translation {t.tolist()}); "
                          "fix the pose or remove the scan (nothing was written)")
     try:

@@ -16,6 +16,8 @@ reading such a file raises :class:`ImportError` whose one line names the
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -58,6 +60,18 @@ def _check_file(path: Path) -> None:
         raise ValueError(f"{path}: no points (truncated or empty file)")
 
 
+@contextlib.contextmanager
+def _quiet(name: str) -> Iterator[None]:
+    """Silence a library's logger: laspy logs a decoding error before raising it, and the raise says it in one line."""
+    logger = logging.getLogger(name)
+    previous = logger.level
+    logger.setLevel(logging.CRITICAL + 1)
+    try:
+        yield
+    finally:
+        logger.setLevel(previous)
+
+
 def _first_line(exc: BaseException) -> str:
     text = str(exc).strip().splitlines()
     return text[0].strip() if text else type(exc).__name__
@@ -74,7 +88,8 @@ def _open_las(path: Path):
         _module("lazrs", path)
         backend = laspy.LazBackend.Lazrs
     try:
-        return laspy.open(str(path), laz_backend=backend)
+        with _quiet("laspy"):
+            return laspy.open(str(path), laz_backend=backend)
     except Exception as exc:  # laspy raises its own errors, ValueError and OSError for bad headers
         raise ValueError(f"{path}: not a readable LAS file ({_first_line(exc)}); truncated or corrupt") from None
 
@@ -142,16 +157,17 @@ def read_las(path: str | os.PathLike, chunk_size: int = CHUNK_POINTS):
         raw = np.empty((n, 3), dtype=np.uint16) if rgb else None
         start = 0
         try:
-            for chunk in reader.chunk_iterator(max(1, int(chunk_size))):
-                m = len(chunk)
-                if start + m > n:
-                    raise ValueError(f"more points than the {n:,} the header announces")
-                points[start:start + m, 0] = chunk.x
-                points[start:start + m, 1] = chunk.y
-                points[start:start + m, 2] = chunk.z
-                if rgb:
-                    raw[start:start + m] = np.column_stack([chunk.red, chunk.green, chunk.blue])
-                start += m
+            with _quiet("laspy"):
+                for chunk in reader.chunk_iterator(max(1, int(chunk_size))):
+                    m = len(chunk)
+                    if start + m > n:
+                        raise ValueError(f"more points than the {n:,} the header announces")
+                    points[start:start + m, 0] = chunk.x
+                    points[start:start + m, 1] = chunk.y
+                    points[start:start + m, 2] = chunk.z
+                    if rgb:
+                        raw[start:start + m] = np.column_stack([chunk.red, chunk.green, chunk.blue])
+                    start += m
         except Exception as exc:  # lazrs and laspy raise their own errors on short or corrupt data
             raise ValueError(f"{path}: truncated or corrupt point data after {start:,} of {n:,} points ({_first_line(exc)})") from None
     if start != n:

@@ -167,7 +167,8 @@ def write_e57(path: str | os.PathLike, scans) -> Path:
     scans : sequence of dict
         ``points`` (M, 3) in the scan's frame, ``name``, and ``rotation``
         ``(w, x, y, z)`` with ``translation`` (3,), or both None for a scan
-        without a pose.  The values are written as given (NaN included).
+        without a pose.  The values are written as given; libe57 cannot
+        store NaN or infinite ones.
 
     Returns
     -------
