@@ -49,9 +49,10 @@ def terrestrial_scans(mesh, positions, step: float = 1.0, noise: float = 0.0, ou
         Standard deviation of Gaussian noise along each ray (mesh units).
     outliers : float in [0, 1)
         Fraction of the returned points that are spurious returns: on a
-        random scanner's ray that hit the mesh, at a random depth between
-        30% and 97% of the true one (in the free space that scanner saw).
-        They are the last rows.
+        random scanner's ray that hit the mesh, at a random depth short of
+        the hit (in the free space that scanner saw), as
+        :func:`o3drbf.synthetic.scans.range_scans` places them.  They are
+        the last rows.
     yaw : (S,) array_like, optional
         Each scanner's turn about z in degrees (default: seeded random).
     seed : int
