@@ -139,6 +139,17 @@ def test_cli_reads_e57_and_tiles_auto_runs_untiled_when_it_fits(scans, tmp_path,
     assert o3d.io.read_triangle_mesh(str(out)).is_watertight()
 
 
+def test_cli_tiles_auto_decides_once_read_when_the_header_has_no_count(tmp_path, capsys):
+    points, normals = Sphere(1.0).sample(400, seed=2)
+    np.savetxt(tmp_path / "s.xyzn", np.hstack([points, normals]))
+    assert point_count(tmp_path / "s.xyzn") is None
+    out = tmp_path / "m.ply"
+    assert main(["reconstruct", str(tmp_path / "s.xyzn"), "-o", str(out), "--tiles", "auto", "--surface-count", "200",
+                 "--resolution", "24", "-q"]) == 0
+    said = [line for line in capsys.readouterr().err.splitlines() if "--tiles auto" in line]
+    assert len(said) == 1 and "400 points fit in memory" in said[0] and out.exists()
+
+
 def test_cli_tiles_auto_stays_tiled_when_the_input_does_not_fit(scans, tmp_path, capsys, monkeypatch):
     import o3drbf.cli.commands as commands
 
