@@ -101,6 +101,14 @@ def _binary_ply(tmp, cut):
     return p
 
 
+def _ascii_ply_cut(tmp, keep=12):
+    """An ASCII PLY with normals announcing 20 vertices, cut inside vertex line ``keep + 1``."""
+    head = PLY_HEAD.replace("property float z\n", "property float z\nproperty float nx\nproperty float ny\nproperty float nz\n")
+    rows = "".join(f"{x} {y} {z} 0 0 1\n" for x, y, z in GOOD_PTS)
+    cut = sum(len(r) + 1 for r in rows.splitlines()[:keep]) + 5
+    return put(tmp / "cut_ascii.ply", head.format(n=len(GOOD_PTS)) + rows[:cut])
+
+
 POINT_CASES = {
     "missing": (lambda t: t / "nope.ply", FileNotFoundError, "not found"),
     "folder": (lambda t: (t / "d.ply").mkdir() or t / "d.ply", ValueError, "is a folder"),
@@ -111,6 +119,7 @@ POINT_CASES = {
     "no end_header": (lambda t: put(t / "n.ply", "ply\nformat ascii 1.0\nelement vertex 3\n"), ValueError, "truncated or empty"),
     "not a ply": (lambda t: put(t / "g.ply", b"\x89PNG garbage"), ValueError, "not a PLY"),
     "binary ply truncated": (lambda t: _binary_ply(t, 100), ValueError, "truncated"),
+    "ascii ply truncated": (_ascii_ply_cut, ValueError, "truncated file: the header promises 20 vertices but only 12 complete"),
     "binary ply cut to header": (lambda t: _binary_ply(t, 20 * 24), ValueError, "truncated"),
     "ply huge vertex count": (lambda t: put(t / "b.ply", PLY_HEAD.format(n=10**12) + "1 2 3\n"), ValueError, "corrupt"),
     "ply with nan": (lambda t: put(t / "nan.ply", ply_text([[0, 0, 0], [float("nan"), 1, 2], [1, 1, 1]])), ValueError, "NaN"),

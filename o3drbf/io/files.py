@@ -474,6 +474,50 @@ def _check_ply_header(path: Path) -> None:
                              f"({count * width:,} bytes) but only {max(body, 0):,} bytes follow")
     elif body <= 1:
         raise ValueError(f"{path}: no points (truncated or empty file)")
+    else:
+        _check_ascii_ply_lines(path, head, end, count)
+
+
+def _check_ascii_ply_lines(path: Path, head: bytes, end: int, count: int) -> None:
+    """Refuse an ASCII PLY with fewer vertex lines than its header announces (a truncated file).
+
+    The lines of the elements before the vertex element and of the vertex
+    element itself are counted (one line per entry); a last line without a
+    newline counts when it holds every vertex property.
+    """
+    nl = head.find(b"\n", end)
+    if nl < 0:
+        return  # ply_header names this
+    before, properties, seen_vertex = 0, 0, False
+    for line in head[:end].decode("ascii", errors="replace").splitlines():
+        tok = line.split()
+        if len(tok) == 3 and tok[0] == "element":
+            if seen_vertex:
+                break
+            seen_vertex = tok[1] == "vertex"
+            if not seen_vertex:
+                try:
+                    before += int(tok[2])
+                except ValueError:
+                    return
+        elif tok and tok[0] == "property" and seen_vertex:
+            properties += 1
+    needed = before + count
+    lines, last = 0, b""
+    with open(path, "rb") as fh:
+        fh.seek(nl + 1)
+        while lines < needed:
+            block = fh.read(1 << 22)
+            if not block:
+                break
+            lines += block.count(b"\n")
+            last = block if b"\n" not in block else block.rsplit(b"\n", 1)[1]
+    if lines < needed and lines + 1 == needed and len(last.split()) >= properties > 0:
+        lines += 1  # the last vertex line, complete but without a newline
+    if lines < needed:
+        read = max(lines - before, 0)
+        raise ValueError(f"{path}: truncated file: the header promises {count:,} vertices but only {read:,} complete vertex "
+                         "lines follow; copy or export the file again")
 
 
 def _check_text_columns(path: Path, allowed: tuple[int, ...]) -> None:
