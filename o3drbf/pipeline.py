@@ -65,6 +65,9 @@ __all__ = [
 
 log = logging.getLogger("o3drbf")
 
+#: Fewest distinct points a reconstruction takes (``PointSet.create``'s ``min_count``).
+MIN_DISTINCT_POINTS = 10
+
 
 # --------------------------------------------------------------------------
 # records
@@ -403,6 +406,11 @@ def merge_repeated(data: PointSet) -> tuple[PointSet, int]:
     points, normals, colors, point_camera, merged = merge_duplicates(data.points, data.normals, data.colors, data.point_camera)
     if not merged:
         return data, 0
+    if len(points) < MIN_DISTINCT_POINTS:
+        n = len(points) + merged
+        what = "copies of one point" if len(points) == 1 else f"copies of {len(points)} points"
+        raise ValueError(f"all {n:,} points are {what}: {merged:,} repeats removed, {len(points)} distinct left; at least "
+                         f"{MIN_DISTINCT_POINTS} distinct points are needed (check how the file was exported)")
     log.warning("%d repeated point(s) merged", merged)
     kept = PointSet.create(points, normals, cameras=data.cameras, point_camera=point_camera, colors=colors, source=data.source)
     return kept, merged

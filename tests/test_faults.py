@@ -993,3 +993,22 @@ def test_reconstruct_file_checks(tmp_path, output, model, cameras, exc, pattern)
     assert snapshot(tmp_path) == before and not temporaries(tmp_path)
     ok = argparse.Namespace(input=j("in.ply"), output=j("fine.ply"), save_model=j("m.npz"), cameras=None)
     assert check_reconstruct_files(ok, GOOD_PTS + 1e6) == tmp_path / "fine.ply"
+
+
+# -- 12. bad input gets one line naming the problem and the fix (issue 26) ----------------------
+
+
+def _one_error_line(capsys) -> str:
+    """The command's stderr, which must be one ``o3drbf: error:`` line."""
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("o3drbf: error: ") and "Traceback" not in err, err
+    return err
+
+
+def test_cli_points_all_copies_of_one_are_named(tmp_path, capsys):
+    write_points(tmp_path / "same.ply", np.tile([[0.1, 0.2, 0.3]], (2000, 1)), np.tile([[0.0, 0.0, 1.0]], (2000, 1)))
+    before = snapshot(tmp_path)
+    assert main(["reconstruct", str(tmp_path / "same.ply"), "-o", str(tmp_path / "o.ply"), *SMALL]) == 2
+    err = _one_error_line(capsys)
+    assert "all 2,000 points are copies of one point: 1,999 repeats removed, 1 distinct left; at least 10 distinct points" in err
+    assert snapshot(tmp_path) == before and not temporaries(tmp_path)
