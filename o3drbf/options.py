@@ -31,6 +31,8 @@ __all__ = [
     "check_untiled_fits",
     "untiled_fits",
     "count_or_auto",
+    "PARAMETER_RANGES",
+    "check_parameter_range",
     "whole_number",
     "CARVE_DEFAULTS",
     "TILE_DEFAULTS",
@@ -297,6 +299,51 @@ TILE_DEFAULTS = {
 #: and the distance, in mean spacings, at which the distance factor is exp(-1/2).
 CONFIDENCE_DEFAULTS = {"neighbours": 32, "distance_scale": 2.0}
 
+#: Kernel parameter values accepted (box units), with what is usual.  Outside
+#: them the arithmetic or the fit breaks down on any data (measured on a
+#: sphere sample: tau 1e-10 overflows the kernel's decay rates, delta 1e-4
+#: gives a mesh off by most of the radius, delta 200 leaves no zero crossing).
+PARAMETER_RANGES = {
+    "delta": (0.1, 200.0, "the paper uses 5 to 40"),
+    "tau": (1e-6, 10.0, "the paper uses 0.005 to 0.025"),
+    "sigma": (1e-3, 10.0, "a few surface-constraint spacings"),
+}
+
+
+def check_parameter_range(name: str, value, label: str | None = None) -> float:
+    """Refuse a kernel parameter outside :data:`PARAMETER_RANGES`, in one line naming the range and the fix.
+
+    Parameters
+    ----------
+    name : str
+        A key of :data:`PARAMETER_RANGES`.
+    value : float
+    label : str, optional
+        How the message names the parameter (default ``--`` and ``name``, the command line's option).
+
+    Returns
+    -------
+    float
+
+    Raises
+    ------
+    ValueError
+        Not a finite number, or outside the range.
+    """
+    import math
+
+    low, high, usual = PARAMETER_RANGES[name]
+    label = label or f"--{name}"
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{label} must be a number in [{low:g}, {high:g}], got {value!r}") from None
+    if not (math.isfinite(x) and low <= x <= high):
+        raise ValueError(f"{label} {x:g} is outside the sensible range [{low:g}, {high:g}] (box units; {usual}); "
+                         f"give {label} in that range, or leave it out for the default")
+    return x
+
+
 #: The paper's fixed values, used for parameters left at None with ``auto=False``.
 PAPER_VALUES = {"delta": 10.0, "tau": 0.01, "sigma": 0.1, "lambda_surface": 1e-3}
 
@@ -458,6 +505,8 @@ class ParameterOptions:
                 f"(its parameters: {', '.join(cls.parameter_names()) or 'none'})"
             )
         make_kernel(cls.name, **{**{k: PAPER_VALUES[k] for k in cls.parameter_names() if k in PAPER_VALUES}, **given})
+        for name in sorted(set(given) & set(PARAMETER_RANGES)):  # valid for the kernel, but beyond what fits
+            check_parameter_range(name, given[name])
         return self
 
 

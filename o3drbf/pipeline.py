@@ -746,6 +746,7 @@ def choose_parameters(data: PointSet, cset: ConstraintSet, options: ParameterOpt
     else:
         defaults = {k: PAPER_VALUES[k] for k in cls.parameter_names() if k in PAPER_VALUES}
         kernel = make_kernel(cls.name, **{**defaults, **given})
+    _check_width(kernel, options, cset.spacing)
     if source["lambda_surface"] == "auto":
         lam_points = np.full(n, chosen.lambda_relative * kernel.value_at_zero)
     else:
@@ -758,6 +759,17 @@ def choose_parameters(data: PointSet, cset: ConstraintSet, options: ParameterOpt
     smoothing[c.kind == SURFACE] = lam_points[cset.surface_index]
     return Parameters(kernel, smoothing, float(np.median(lam_points)), lam_e, source,
                       None if chosen is None else chosen.as_dict(), float(noise))
+
+
+def _check_width(kernel: Kernel, options: ParameterOptions, spacing: float) -> None:
+    """Refuse a given Gaussian width under one surface-constraint spacing (box units): the bumps would not overlap."""
+    sigma = kernel.params.get("sigma")
+    given = options.sigma is not None or isinstance(options.kernel, Kernel)
+    if sigma is None or not given or not np.isfinite(spacing) or sigma >= spacing:
+        return
+    raise ValueError(f"--sigma {sigma:g} is narrower than the surface constraints' spacing {spacing:.3g} (box units): the Gaussians "
+                     f"do not overlap and leave no surface between the constraints; give --sigma of at least {spacing:.2g} "
+                     f"(about {8 * spacing:.2g}, 8 spacings, suits most data)")
 
 
 def fit(constraints: Constraints, kernel: Kernel, normalization: Normalization, solver: str = "auto", progress: bool = False,
@@ -874,10 +886,12 @@ def mesh_surface(surface: ImplicitSurface, options: ExtractOptions = ExtractOpti
         return extract_mesh(surface, resolution=resolution, voxel_size=options.voxel_size, bounds=options.bounds, progress=progress)
     except RuntimeError as exc:
         lam = surface.metadata.get("lambda_surface", float("nan"))
+        spacing = float(surface.metadata.get("mean_spacing", float("nan")))
         raise RuntimeError(
-            f"{exc}. The fit has no zero crossing: smoothing may swamp the data "
-            f"(lambda_surface {lam:g} vs phi(0) = {surface.kernel.value_at_zero:.3g}); "
-            "lower lambda_surface, or check the normals/exterior constraints"
+            f"{exc}. The fit has no zero crossing: the kernel {surface.kernel!r} may not suit the surface constraints' "
+            f"spacing {spacing:.3g} (box units; leave --delta, --tau and --sigma out for the defaults), or smoothing may "
+            f"swamp the data (lambda_surface {lam:g} vs phi(0) = {surface.kernel.value_at_zero:.3g}; lower --lambda-surface), "
+            "or check the normals/exterior constraints"
         ) from None
 
 

@@ -1012,3 +1012,34 @@ def test_cli_points_all_copies_of_one_are_named(tmp_path, capsys):
     err = _one_error_line(capsys)
     assert "all 2,000 points are copies of one point: 1,999 repeats removed, 1 distinct left; at least 10 distinct points" in err
     assert snapshot(tmp_path) == before and not temporaries(tmp_path)
+
+
+@pytest.mark.parametrize(
+    "args,pattern",
+    [
+        (["--tau", "1e-300"], r"--tau 1e-300 is outside the sensible range \[1e-06, 10\] \(box units; the paper uses 0.005 to 0.025\); give --tau"),
+        (["--delta", "1e-300"], r"--delta 1e-300 is outside the sensible range \[0.1, 200\]"),
+        (["--basis", "gaussian", "--sigma", "1e-6"], r"--sigma 1e-06 is outside the sensible range \[0.001, 10\]"),
+        (["--kernel", "gaussian", "--sigma", "0.01"], r"--sigma 0.01 is narrower than the surface constraints' spacing .* give --sigma of at least"),
+    ],
+)
+def test_cli_kernel_parameter_out_of_range_is_one_line(cloud, capsys, args, pattern):
+    import re
+
+    before = snapshot(cloud)
+    assert main(["reconstruct", str(cloud / "in.ply"), "-o", str(cloud / "o.ply"), *SMALL, *args]) == 2
+    assert re.search(pattern, _one_error_line(capsys))
+    assert snapshot(cloud) == before and not temporaries(cloud)
+
+
+def test_kernel_parameter_range_in_python_and_photos(tmp_path, capsys):
+    from o3drbf.pipeline import reconstruct
+
+    p, n = Sphere(1.0).sample(200, seed=1)
+    with pytest.raises(ValueError, match="--tau 1e-300 is outside the sensible range"):
+        reconstruct(p, n, tau=1e-300)
+    with pytest.raises(ValueError, match="--delta 1e-300 is outside"):
+        reconstruct(p, n, delta=1e-300)
+    # photos checks it before reading a single photograph
+    assert main(["photos", str(tmp_path), "-o", str(tmp_path / "m.ply"), "--tau", "1e-300", "-q"]) == 2
+    assert "--tau 1e-300 is outside the sensible range" in _one_error_line(capsys)

@@ -545,6 +545,11 @@ def _warnings_as_log_lines():
 
 
 def _dispatch(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    from o3drbf.options import PARAMETER_RANGES, check_parameter_range
+
+    for name in PARAMETER_RANGES:  # before any file is read, for every command that has the option
+        if getattr(args, name, None) is not None:
+            check_parameter_range(name, getattr(args, name))
     if args.command == "reconstruct":
         return _reconstruct(args)
     if args.command == "compare":
