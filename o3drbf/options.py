@@ -504,9 +504,10 @@ class ParameterOptions:
                 f"{', '.join(wrong)} {'does' if len(wrong) == 1 else 'do'} not apply to the {cls.name!r} kernel "
                 f"(its parameters: {', '.join(cls.parameter_names()) or 'none'})"
             )
+        for name in sorted(set(given) & set(PARAMETER_RANGES)):  # positive, but beyond what fits (the kernel names the rest)
+            if isinstance(given[name], (int, float)) and given[name] > 0:
+                check_parameter_range(name, given[name])
         make_kernel(cls.name, **{**{k: PAPER_VALUES[k] for k in cls.parameter_names() if k in PAPER_VALUES}, **given})
-        for name in sorted(set(given) & set(PARAMETER_RANGES)):  # valid for the kernel, but beyond what fits
-            check_parameter_range(name, given[name])
         return self
 
 
