@@ -68,6 +68,9 @@ log = logging.getLogger("o3drbf")
 #: Fewest distinct points a reconstruction takes (``PointSet.create``'s ``min_count``).
 MIN_DISTINCT_POINTS = 10
 
+#: Fewest marching-cubes cells along the extraction box's longest side a ``voxel_size`` may leave.
+MIN_VOXEL_CELLS = 8
+
 
 # --------------------------------------------------------------------------
 # records
@@ -868,6 +871,40 @@ def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = F
     return surface, sol, robust
 
 
+def check_voxel_size(voxel_size, bounds) -> None:
+    """Refuse a ``voxel_size`` that leaves fewer than :data:`MIN_VOXEL_CELLS` cells along the box's longest side.
+
+    Parameters
+    ----------
+    voxel_size : float or None
+        Data units (None: nothing to check).
+    bounds : (2, 3) array_like
+        The extraction box, data units.
+
+    Raises
+    ------
+    ValueError
+        One line: the cells left, the data's extent, and the largest voxel size that works.
+    """
+    if voxel_size is None or bounds is None:
+        return
+    b = np.asarray(bounds, dtype=float)
+    extent = float((b[1] - b[0]).max())
+    if extent > 0 and extent / float(voxel_size) < MIN_VOXEL_CELLS:
+        raise ValueError(f"--voxel-size {float(voxel_size):g} leaves {extent / float(voxel_size):.2g} cells along the longest side of the "
+                         f"box meshed ({extent:.4g} data units: the data plus 5 %), too coarse for a surface; give --voxel-size of at most "
+                         f"{extent / MIN_VOXEL_CELLS:.3g} ({MIN_VOXEL_CELLS} cells), or --resolution instead")
+
+
+def _extraction_bounds(data: PointSet, options: ExtractOptions) -> np.ndarray:
+    """The box marching cubes covers (data units): ``options.bounds``, else the points' box padded by 5 %."""
+    if options.bounds is not None:
+        return np.asarray(options.bounds, dtype=float)
+    lo, hi = data.bounds
+    pad = 0.05 * float((hi - lo).max())
+    return np.stack([lo - pad, hi + pad])
+
+
 def mesh_surface(surface: ImplicitSurface, options: ExtractOptions = ExtractOptions(), *, progress: bool = False):
     """Marching cubes of f = 0 (:func:`o3drbf.extract.extract_mesh`).
 
@@ -882,6 +919,7 @@ def mesh_surface(surface: ImplicitSurface, options: ExtractOptions = ExtractOpti
     resolution = options.resolution
     if resolution == "auto":
         resolution = auto_resolution(float(surface.metadata.get("mean_spacing", float("nan"))))
+    check_voxel_size(options.voxel_size, options.bounds if options.bounds is not None else surface.metadata.get("bounds"))
     try:
         return extract_mesh(surface, resolution=resolution, voxel_size=options.voxel_size, bounds=options.bounds, progress=progress)
     except RuntimeError as exc:
@@ -1018,6 +1056,8 @@ def reconstruct(points, normals=None, *, cameras=None, point_camera=None, colors
         data = points if isinstance(points, PointSet) else PointSet.create(points, normals, cameras=cameras, point_camera=point_camera, colors=colors)
         data, merged = merge_repeated(data)
         check_spans_volume(data.points)
+        if extract_mesh:
+            check_voxel_size(opts.extract.voxel_size, _extraction_bounds(data, opts.extract))
     n_input = len(data) + merged
     registration = None
     if data.point_camera is not None:  # scans known: they may be registered to each other

@@ -1043,3 +1043,13 @@ def test_kernel_parameter_range_in_python_and_photos(tmp_path, capsys):
     # photos checks it before reading a single photograph
     assert main(["photos", str(tmp_path), "-o", str(tmp_path / "m.ply"), "--tau", "1e-300", "-q"]) == 2
     assert "--tau 1e-300 is outside the sensible range" in _one_error_line(capsys)
+
+
+def test_cli_voxel_size_beyond_the_data_is_refused(cloud, capsys):
+    before = snapshot(cloud)
+    assert main(["reconstruct", str(cloud / "in.ply"), "-o", str(cloud / "o.ply"), *SMALL, "--voxel-size", "1e6"]) == 2
+    err = _one_error_line(capsys)
+    assert "--voxel-size 1e+06 leaves 2.2e-06 cells along the longest side" in err and "give --voxel-size of at most 0.274 (8 cells)" in err
+    assert snapshot(cloud) == before and not temporaries(cloud)
+    assert main(["reconstruct", str(cloud / "in.ply"), "-o", str(cloud / "o.ply"), *SMALL, "--voxel-size", "0.25"]) == 0
+    (cloud / "o.ply").unlink()
