@@ -318,6 +318,10 @@ class Reconstruction:
     confidence : VertexConfidence or None
         Per vertex of ``mesh`` (:func:`mesh_confidence`), when ``confidence``
         or ``trim`` was asked; else None.
+    points : (N, 3) ndarray or None
+        The points kept (data coordinates): after merging repeats,
+        registering the scans and removing outliers; what the fitness error
+        is measured over.
     """
 
     surface: ImplicitSurface
@@ -327,6 +331,7 @@ class Reconstruction:
     report: Report
     options: Options = field(default_factory=Options)
     confidence: object = None
+    points: np.ndarray | None = None
 
     def plot(self, *, constraints: bool = False, compare: dict | None = None, title: str | None = None, **options):
         """Show the mesh with PyVista: inline in Jupyter (static PNG, or interactive with trame), else a window or offscreen.
@@ -1136,4 +1141,4 @@ def reconstruct(points, normals=None, *, cameras=None, point_camera=None, colors
         stages=stages.timings,
         confidence=None if confidence is None else {**confidence.summary(), "trim": opts.confidence.trim, "triangles_removed": trimmed},
     )
-    return Reconstruction(surface, mesh, used, sol, report, opts, confidence)
+    return Reconstruction(surface, mesh, used, sol, report, opts, confidence, data.points)

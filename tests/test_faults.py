@@ -1053,3 +1053,25 @@ def test_cli_voxel_size_beyond_the_data_is_refused(cloud, capsys):
     assert snapshot(cloud) == before and not temporaries(cloud)
     assert main(["reconstruct", str(cloud / "in.ply"), "-o", str(cloud / "o.ply"), *SMALL, "--voxel-size", "0.25"]) == 0
     (cloud / "o.ply").unlink()
+
+
+# -- 13. the closing summary says the truth (issue 26) ------------------------------------------
+
+
+def test_cli_summary_counts_and_fitness_over_kept_points(tmp_path, capsys):
+    import re
+
+    rng = np.random.default_rng(0)
+    p, n = Sphere(1.0).sample(600, noise=0.002, seed=1)
+    far = rng.uniform(-2.0, 2.0, size=(30, 3))
+    far = far[np.abs(np.linalg.norm(far, axis=1) - 1.0) > 0.5]  # well off the surface
+    m = rng.normal(size=far.shape)
+    write_points(tmp_path / "noisy.ply", np.vstack([p, far]), np.vstack([n, m / np.linalg.norm(m, axis=1)[:, None]]))
+    assert main(["reconstruct", str(tmp_path / "noisy.ply"), "-o", str(tmp_path / "o.ply"), "--surface-count", "200",
+                 "--resolution", "24"]) == 0
+    out = capsys.readouterr().out
+    read, kept, removed = map(int, re.search(r"points +(\d+) read, (\d+) kept \((\d+) removed as outliers\)", out).groups())
+    assert read == 600 + len(far) and kept + removed == read and removed >= len(far) // 2
+    fit = re.search(rf"fitness error +over the {kept} kept points: mean (\S+), RMS (\S+), max (\S+) \(data units", out)
+    assert fit is not None, out
+    assert float(fit.group(3)) < 0.5  # the far points (0.5 to 2.5 off the sphere) are not measured

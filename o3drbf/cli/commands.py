@@ -428,14 +428,17 @@ def summary(result, points, input_path, output_path, model_path=None, seconds=No
     from o3drbf.mesh.metrics import fitness_error, mesh_report
 
     s = result.report
-    fit = fitness_error(points, result.mesh)
+    kept = points if getattr(result, "points", None) is None else result.points  # outliers removed, repeats merged
+    fit = fitness_error(kept, result.mesh)
+    removed = [f"{s.outliers_removed:,} removed as outliers"] * bool(s.outliers_removed) + [
+        f"{s.duplicates_merged:,} repeated points merged"] * bool(s.duplicates_merged)
     rep = mesh_report(result.mesh)
     scale = result.surface.normalization.scale
     colored = result.mesh.has_vertex_colors()
     lines = [
         f"o3drbf reconstruct: {input_path} -> {output_path}",
-        f"  points           {s.points:,}" + ("  (normals estimated)" if s.normals_estimated else "")
-        + (f", {s.duplicates_merged:,} repeated points merged" if s.duplicates_merged else ""),
+        f"  points           {s.input_points or s.points:,} read, {s.points:,} kept" + (f" ({', '.join(removed)})" if removed else "")
+        + ("  (normals estimated)" if s.normals_estimated else ""),
         *([f"  registration     {s.registration['reason']}"] if s.registration else []),
         f"  outliers         {s.outliers_removed:,} removed ({s.outlier_method}: {s.outlier_reason})",
         f"  constraints      {s.surface_constraints:,} surface, {s.exterior_constraints:,} exterior, {s.sphere_constraints:,} sphere",
@@ -456,7 +459,8 @@ def summary(result, points, input_path, output_path, model_path=None, seconds=No
         + (f", {s.resolution} cells on the longest side" if s.resolution else "") + f", extracted in {s.extract_seconds:.2f} s"
         + (f"; {s.specks_removed} speck(s) under two constraint spacings across removed" if s.specks_removed else ""),
         _watertight_line(rep),
-        f"  fitness error    mean {fit['mean']:.3g}, RMS {fit['rms']:.3g}, max {fit['max']:.3g} (data units; mean {fit['mean'] * scale:.2e} in the box)",
+        f"  fitness error    over the {len(kept):,} kept points: mean {fit['mean']:.3g}, RMS {fit['rms']:.3g}, max {fit['max']:.3g} "
+        f"(data units; mean {fit['mean'] * scale:.2e} in the box)",
     ]
     if colored:
         lines.insert(-2, "  colour           from the input points' colours")
@@ -548,8 +552,9 @@ def _dispatch(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     from o3drbf.options import PARAMETER_RANGES, check_parameter_range
 
     for name in PARAMETER_RANGES:  # before any file is read, for every command that has the option
-        if getattr(args, name, None) is not None:
-            check_parameter_range(name, getattr(args, name))
+        value = getattr(args, name, None)
+        if isinstance(value, (int, float)) and value > 0:  # zero and negatives: the kernel's own message
+            check_parameter_range(name, value)
     if args.command == "reconstruct":
         return _reconstruct(args)
     if args.command == "compare":
