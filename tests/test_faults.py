@@ -1075,3 +1075,36 @@ def test_cli_summary_counts_and_fitness_over_kept_points(tmp_path, capsys):
     fit = re.search(rf"fitness error +over the {kept} kept points: mean (\S+), RMS (\S+), max (\S+) \(data units", out)
     assert fit is not None, out
     assert float(fit.group(3)) < 0.5  # the far points (0.5 to 2.5 off the sphere) are not measured
+
+
+# -- 14. nothing is lost: no command writes over what it reads (issue 26) -------------------------
+
+
+@pytest.mark.parametrize("where", ["beside the calibration", "in images/"])
+def test_cli_photos_never_writes_over_a_photograph(tmp_path, capsys, where):
+    par = _middlebury(tmp_path)  # names im0.png
+    photo = tmp_path / "im0.png"
+    if where == "in images/":
+        (tmp_path / "images").mkdir()
+        photo = photo.rename(tmp_path / "images" / "im0.png")
+    before = snapshot(tmp_path)
+    assert main(["photos", str(tmp_path), "--calibration", str(par), "-o", str(tmp_path / "m.ply"), "--picture", str(photo), "-q"]) == 2
+    assert f"output {str(photo)!r} is the input file; choose another name" in _one_error_line(capsys)
+    assert snapshot(tmp_path) == before and not temporaries(tmp_path)
+
+
+def test_picture_is_checked_against_inputs_and_read_back(tmp_path, monkeypatch):
+    from o3drbf.cameras.model import Camera
+    from o3drbf.photo.pipeline import picture
+
+    cam = Camera.from_dict({**CAM, "t": [0, 0, 4], "width": 16, "height": 16})
+    photo = tmp_path / "photo.png"
+    photo.write_bytes(b"the photograph")
+    with pytest.raises(ValueError, match="is the input file"):
+        picture(sphere_mesh(), cam, np.zeros((16, 16, 3)), photo, inputs=[photo])
+    import skimage.io
+
+    monkeypatch.setattr(skimage.io, "imread", lambda path: np.zeros((3, 3, 3), dtype=np.uint8))  # a write that came out wrong
+    with pytest.raises(OSError, match="cannot write .*reads back as 3x3"):
+        picture(sphere_mesh(), cam, np.zeros((16, 16, 3)), tmp_path / "new.png")
+    assert photo.read_bytes() == b"the photograph" and not (tmp_path / "new.png").exists() and not temporaries(tmp_path)

@@ -37,7 +37,7 @@ from o3drbf.options import PHOTO_DEFAULTS
 from o3drbf.photo import carve as carving
 from o3drbf.validation import as_rgb
 
-__all__ = ["add_photos_arguments", "main_photos", "run_photos", "PhotosResult", "readme_bounds", "picture", "PHOTO_DEFAULTS"]
+__all__ = ["add_photos_arguments", "main_photos", "run_photos", "PhotosResult", "readme_bounds", "picture", "photo_inputs", "PHOTO_DEFAULTS"]
 
 log = logging.getLogger("o3drbf")
 
@@ -333,7 +333,42 @@ def render_model(mesh, camera, lighting: bool = False) -> np.ndarray:
     return np.asarray(img)[:, :, :3]
 
 
-def picture(mesh, camera, photo, path, lighting: bool = False) -> Path:
+def photo_inputs(images_dir, calibration=None) -> list[Path]:
+    """The files ``o3drbf photos`` reads, which no output may overwrite.
+
+    The image folder, the calibration (or the folder it is found in), and
+    every photograph the calibration names that exists in the image folder
+    (or its ``images`` subfolder).  The files a calibration itself refers to
+    are added by :func:`o3drbf.io.files.check_outputs`.
+
+    Parameters
+    ----------
+    images_dir : path-like
+    calibration : path-like, optional
+
+    Returns
+    -------
+    list of Path
+        Unreadable calibrations contribute only their own path (reading them
+        later names the problem).
+    """
+    from o3drbf.cameras.model import load_cameras
+
+    folder = Path(images_dir)
+    cal = Path(calibration) if calibration else folder
+    files = [folder, cal]
+    try:
+        cams = load_cameras(cal)
+    except (ValueError, OSError):
+        return files
+    for cam in cams:
+        found = carving.find_image(folder, cam.name) if cam.name else None
+        if found is not None:
+            files.append(found)
+    return files
+
+
+def picture(mesh, camera, photo, path, lighting: bool = False, inputs=()) -> Path:
     """The input photograph and the coloured model from the same camera, side by side (PNG).
 
     Parameters
@@ -345,22 +380,31 @@ def picture(mesh, camera, photo, path, lighting: bool = False) -> Path:
     photo : (H, W, 3) array
         The photograph taken by ``camera``.
     path : path-like
-        Output ``.png``, written atomically.
+        Output ``.png``, written atomically and read back before it replaces ``path``.
+    inputs : iterable of path-like
+        Files the picture must not overwrite (:func:`o3drbf.io.files.check_outputs`).
     """
     import skimage.io
 
-    from o3drbf.io.files import atomic_path
+    from o3drbf.io.files import atomic_path, check_outputs, write_failed
 
     path = Path(path)
     if path.suffix.lower() != ".png":
         raise ValueError(f"picture must be a .png file, got {str(path)!r}")
-    if not (path.parent if str(path.parent) else Path(".")).is_dir():
-        raise FileNotFoundError(f"output folder does not exist: {path.parent}")
+    check_outputs([path], inputs)
     render = render_model(mesh, camera, lighting=lighting)
     photo8 = (np.clip(as_rgb(photo, "photo", np.float32), 0, 1) * 255).round().astype(np.uint8)
     gap = np.full((photo8.shape[0], 8, 3), 255, dtype=np.uint8)
     panel = np.concatenate([photo8, gap, render], axis=1)
-    with atomic_path(path) as tmp:
+    def verify(tmp):
+        try:
+            back = skimage.io.imread(tmp)
+        except Exception as exc:  # noqa: BLE001 - any decoder failure means a bad write
+            raise write_failed(path, f"the picture does not read back ({exc})") from None
+        if back.shape[:2] != panel.shape[:2]:
+            raise write_failed(path, f"the picture reads back as {back.shape[1]}x{back.shape[0]}, not {panel.shape[1]}x{panel.shape[0]}")
+
+    with atomic_path(path, verify=verify) as tmp:
         skimage.io.imsave(tmp, panel, check_contrast=False)
     return path
 
@@ -450,6 +494,9 @@ def main_photos(args: argparse.Namespace) -> int:
         pic = Path(args.picture)
         if pic.suffix.lower() != ".png":
             raise ValueError(f"--picture must be a .png file, got {args.picture!r}")
+    # the one guard of every command: no output is an input, a file an input refers to, or given twice
+    inputs = photo_inputs(args.images, args.calibration)
+    io.check_outputs([out, args.picture], inputs)
     res = run_photos(
         args.images,
         args.calibration,
@@ -471,11 +518,11 @@ def main_photos(args: argparse.Namespace) -> int:
         progress=not args.quiet,
     )
     k = _camera_index(args.picture_camera, res.cameras) if args.picture else None
-    io.write_mesh(out, res.mesh)
+    io.write_mesh(out, res.mesh, inputs=inputs)
     t_pic = 0.0
     if args.picture:
         t0 = time.perf_counter()
-        picture(res.mesh, res.cameras[k], res.images[k], args.picture)
+        picture(res.mesh, res.cameras[k], res.images[k], args.picture, inputs=inputs)
         t_pic = time.perf_counter() - t0
     res.stats["picture_seconds"] = t_pic
     if not args.quiet:
