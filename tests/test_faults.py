@@ -1108,3 +1108,21 @@ def test_picture_is_checked_against_inputs_and_read_back(tmp_path, monkeypatch):
     with pytest.raises(OSError, match="cannot write .*reads back as 3x3"):
         picture(sphere_mesh(), cam, np.zeros((16, 16, 3)), tmp_path / "new.png")
     assert photo.read_bytes() == b"the photograph" and not (tmp_path / "new.png").exists() and not temporaries(tmp_path)
+
+
+def test_cli_photos_refuses_a_photograph_of_another_size(tmp_path, capsys):
+    """A Middlebury calibration names no image size: each photograph's own is used, so check it against the principal point."""
+    import skimage.io
+
+    rows = []
+    for i, (w, h) in enumerate([(16, 12), (16, 12), (8, 6)]):  # the third was resized to half
+        skimage.io.imsave(tmp_path / f"im{i}.png", np.full((h, w, 3), 200, dtype=np.uint8), check_contrast=False)
+        rows.append(f"im{i}.png 20 0 8 0 20 6 0 0 1 1 0 0 0 1 0 0 0 1 0 0 3")
+    par = tmp_path / "x_par.txt"
+    par.write_text(f"{len(rows)}\n" + "\n".join(rows) + "\n")
+    before = snapshot(tmp_path)
+    assert main(["photos", str(tmp_path), "--calibration", str(par), "-o", str(tmp_path / "m.ply"), "-q"]) == 2
+    err = _one_error_line(capsys)
+    assert "image im2.png is 8x6, but its calibration is for about 16x12 images (principal point (8, 6)" in err
+    assert "give the photograph at the size it was calibrated for" in err
+    assert snapshot(tmp_path) == before and not temporaries(tmp_path)

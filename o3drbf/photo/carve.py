@@ -215,10 +215,31 @@ def read_images(folder: str | os.PathLike, cameras) -> tuple[list[np.ndarray], l
         if (cam.width is not None and cam.width != w) or (cam.height is not None and cam.height != h):
             raise ValueError(f"image {p.name} is {w}x{h} but its calibration says {cam.width}x{cam.height} (image size mismatch)")
         if cam.width is None or cam.height is None:
+            _check_principal_point(p.name, cam, w, h)
             cam = Camera(K=cam.K, R=cam.R, t=cam.t, width=w, height=h, name=cam.name)
         images.append(img)
         out.append(cam)
     return images, out
+
+
+#: Largest distance of a calibrated principal point from its photograph's centre, as a fraction of
+#: the photograph's width (height): beyond it, the photograph is not the size the calibration was made for.
+PRINCIPAL_POINT_TOLERANCE = 0.125
+
+
+def _check_principal_point(name: str, cam, w: int, h: int) -> None:
+    """Refuse a photograph whose size does not fit its calibration (which gives no image size).
+
+    The principal point of a calibrated camera lies near the centre of the
+    image it was calibrated on, so ``2 cx`` by ``2 cy`` is about that image's
+    size; a photograph of another size (resized, or another one) would be
+    projected onto wrongly.
+    """
+    cx, cy = float(cam.K[0, 2]), float(cam.K[1, 2])
+    if abs(cx - w / 2) > PRINCIPAL_POINT_TOLERANCE * w or abs(cy - h / 2) > PRINCIPAL_POINT_TOLERANCE * h:
+        raise ValueError(f"image {name} is {w}x{h}, but its calibration is for about {2 * cx:.0f}x{2 * cy:.0f} images (principal point "
+                         f"({cx:.4g}, {cy:.4g}), near the centre of the image it was calibrated on); give the photograph at the size it "
+                         "was calibrated for (image size mismatch)")
 
 
 def _check_images(images, cameras) -> list[np.ndarray]:

@@ -123,6 +123,10 @@ def _load(images_dir, calibration):
     bad = [c.name or str(i) for i, c in enumerate(cams) if c.kind != "pinhole"]
     if bad:
         raise ValueError(f"{cal}: cameras {', '.join(bad[:3])} are not pinhole cameras; photographs need K, R, t")
+    if cams.format == "middlebury":  # its image sizes are the photographs' own: check them against the principal points
+        for cam in cams:
+            if cam.width is not None and cam.height is not None:
+                carving._check_principal_point(cam.name, cam, cam.width, cam.height)
     images, cams2 = carving.read_images(folder, cams)
     return images, cams2, cams
 
