@@ -50,6 +50,7 @@ __all__ = [
     "ConstraintSet",
     "Parameters",
     "merge_repeated",
+    "drop_cameras_within_data",
     "remove_outliers",
     "ensure_normals",
     "estimate_normals",
@@ -210,6 +211,10 @@ class Report:
     outlier_method, outlier_reason : str
     normals_estimated : bool
     cameras : int
+        Cameras used.
+    cameras_dropped : list of str
+        Cameras given but not used: their centre lies within the data
+        (:func:`drop_cameras_within_data`).
     points_seen_per_camera : list of int or None
     surface_constraints, exterior_constraints, sphere_constraints : int
     mean_spacing_box, mean_spacing : float
@@ -254,6 +259,7 @@ class Report:
     outlier_reason: str = ""
     normals_estimated: bool = False
     cameras: int = 0
+    cameras_dropped: list = field(default_factory=list)
     points_seen_per_camera: list | None = None
     surface_constraints: int = 0
     exterior_constraints: int = 0
@@ -422,6 +428,69 @@ def merge_repeated(data: PointSet) -> tuple[PointSet, int]:
     log.warning("%d repeated point(s) merged", merged)
     kept = PointSet.create(points, normals, cameras=data.cameras, point_camera=point_camera, colors=colors, source=data.source)
     return kept, merged
+
+
+def drop_cameras_within_data(data: PointSet) -> tuple[PointSet, list[str]]:
+    """Drop the cameras whose centre lies within the data: at a point, or closer to one than the visibility test can resolve.
+
+    A camera that close (within the ray margin of
+    :mod:`o3drbf.constraints.visibility`, ``VOXEL_SPACINGS * MARGIN_VOXELS``
+    mean point spacings) would be taken to see every point near it with
+    nothing tested in between, and would place exterior (free-space)
+    constraints along the surface or inside the object; a camera exactly at
+    a point has no direction toward it at all.  Such a camera is a wrong
+    pose (or a sensor position that is not a viewpoint): it is dropped, its
+    points are kept as points of unknown camera, and a warning names it.
+
+    Parameters
+    ----------
+    data : PointSet
+
+    Returns
+    -------
+    PointSet
+        Without those cameras (the same object when none is dropped).
+    list of str
+        The dropped cameras, e.g. ``"camera 3 (img03.png)"``.
+
+    Raises
+    ------
+    ValueError
+        Every camera lies within the data.
+    """
+    if data.cameras is None:
+        return data, []
+    from dataclasses import replace
+
+    from o3drbf.constraints.visibility import MARGIN_VOXELS, VOXEL_SPACINGS
+
+    clearance = VOXEL_SPACINGS * MARGIN_VOXELS * data.spacing
+    with_centre = [k for k, cam in enumerate(data.cameras) if cam.kind != "direction"]
+    if not with_centre:
+        return data, []
+    distance, _ = data.kdtree.query(np.array([data.cameras[k].center for k in with_centre]))
+    inside = {k: float(d) for k, d in zip(with_centre, distance) if d <= clearance}
+    if not inside:
+        return data, []
+    labels = [f"camera {k}" + (f" ({data.cameras[k].name})" if data.cameras[k].name else "") for k in inside]
+    spacings = max(inside.values()) / data.spacing
+    limit = clearance / data.spacing
+    if len(inside) == len(data.cameras):
+        raise ValueError(f"every camera lies within the data (at most {spacings:.2g} point spacings from a point, closer than the "
+                         f"{limit:.3g} the visibility test resolves): no free space can be proved; check the camera poses "
+                         "(x_cam = R X + t, looking along +z), or give normals and leave --cameras out")
+    one = len(labels) == 1
+    log.warning("%s %s %.2g point spacings from a data point, closer than the %.3g the visibility test resolves (inside the data): "
+                "%s free-space constraints dropped, %s points kept; check %s pose", ", ".join(labels), "lies" if one else "lie (at most)",
+                spacings, limit, "its" if one else "their", "its" if one else "their", "its" if one else "their")
+    kept = [k for k in range(len(data.cameras)) if k not in inside]
+    point_camera = None
+    if data.point_camera is not None:
+        new = np.full(len(data.cameras), -1, dtype=np.int64)
+        new[kept] = np.arange(len(kept))
+        point_camera = np.where(data.point_camera >= 0, new[np.maximum(data.point_camera, 0)], -1)
+        point_camera = None if (point_camera < 0).all() else point_camera
+    return replace(data, cameras=[data.cameras[k] for k in kept], point_camera=point_camera, _cache=data._cache), labels
 
 
 def register_scans(data: PointSet, options: RegistrationOptions = RegistrationOptions(), *, seed: int = 0):
@@ -1063,6 +1132,7 @@ def reconstruct(points, normals=None, *, cameras=None, point_camera=None, colors
         check_spans_volume(data.points)
         if extract_mesh:
             check_voxel_size(opts.extract.voxel_size, _extraction_bounds(data, opts.extract))
+        data, cameras_dropped = drop_cameras_within_data(data)
     n_input = len(data) + merged
     registration = None
     if data.point_camera is not None:  # scans known: they may be registered to each other
@@ -1112,6 +1182,7 @@ def reconstruct(points, normals=None, *, cameras=None, point_camera=None, colors
         outlier_reason=outliers.reason,
         normals_estimated=estimated,
         cameras=0 if data.cameras is None else len(data.cameras),
+        cameras_dropped=cameras_dropped,
         points_seen_per_camera=cset.points_seen_per_camera,
         surface_constraints=counts["surface"],
         exterior_constraints=counts["exterior"],

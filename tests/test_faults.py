@@ -1126,3 +1126,44 @@ def test_cli_photos_refuses_a_photograph_of_another_size(tmp_path, capsys):
     assert "image im2.png is 8x6, but its calibration is for about 16x12 images (principal point (8, 6)" in err
     assert "give the photograph at the size it was calibrated for" in err
     assert snapshot(tmp_path) == before and not temporaries(tmp_path)
+
+
+# -- 15. a camera inside the data is dropped, so the mesh stays right (issue 26) -----------------
+
+
+def _ring_cameras():
+    from o3drbf.synthetic.scans import camera_ring
+
+    return camera_ring((0, 0, 0), 1.0, n_views=6, elevation=35, width=80, height=60, fov=50) + camera_ring(
+        (0, 0, 0), 1.0, n_views=6, elevation=-35, width=80, height=60, fov=50, azimuth=30)
+
+
+@pytest.mark.parametrize("scans", [False, True], ids=["cameras only", "with point_camera"])
+def test_camera_at_a_surface_point_is_dropped(caplog, scans):
+    from o3drbf.cameras.model import Camera
+    from o3drbf.mesh.metrics import mesh_report
+    from o3drbf.pipeline import reconstruct
+
+    points, _ = Sphere(1.0).sample(2000, seed=2)
+    cams = _ring_cameras()
+    kw = {}
+    if scans:  # each point seen by its nearest ring camera; those near the bad camera's centre by it
+        centres = np.array([c.center for c in cams])
+        pc = np.argmin(((points[:, None] - centres[None]) ** 2).sum(-1), axis=1)
+        pc[np.linalg.norm(points - points[0], axis=1) < 0.5] = len(cams)
+        kw["point_camera"] = pc
+    with caplog.at_level("WARNING", logger="o3drbf"):
+        r = reconstruct(points, cameras=cams + [Camera.from_center(points[0], name="bad")], surface_count=500, resolution=32, **kw)
+    assert r.report.cameras == 12 and r.report.cameras_dropped == ["camera 12 (bad)"]
+    assert "camera 12 (bad) lies 0 point spacings from a data point" in caplog.text
+    radial = np.abs(np.linalg.norm(np.asarray(r.mesh.vertices), axis=1) - 1.0)
+    assert mesh_report(r.mesh)["components"] == 1 and radial.max() < 0.035, radial.max()
+
+
+def test_every_camera_inside_the_data_is_refused():
+    from o3drbf.cameras.model import Camera
+    from o3drbf.pipeline import reconstruct
+
+    points, _ = Sphere(1.0).sample(500, seed=2)
+    with pytest.raises(ValueError, match="every camera lies within the data .*check the camera poses"):
+        reconstruct(points, cameras=[Camera.from_center(points[0]), Camera.from_center([0.0, 0.0, 1.0])], surface_count=100, resolution=16)

@@ -475,7 +475,9 @@ def summary(result, points, input_path, output_path, model_path=None, seconds=No
     if s.cameras:
         seen = s.points_seen_per_camera or []
         shown = ", ".join(f"{v:,}" for v in seen[:12]) + (", ..." if len(seen) > 12 else "")
-        lines.insert(2, f"  cameras          {s.cameras}; surface constraints seen per camera: {shown}")
+        dropped = getattr(s, "cameras_dropped", None) or []
+        lines.insert(2, f"  cameras          {s.cameras}; surface constraints seen per camera: {shown}"
+                     + (f"; {len(dropped)} more dropped, inside the data: {', '.join(dropped)}" if dropped else ""))
     if model_path:
         lines.append(f"  model            {model_path}")
     stages = ", ".join(f"{t.name} {t.seconds:.2f}" for t in s.stages)
