@@ -1002,7 +1002,7 @@ def mesh_surface(surface: ImplicitSurface, options: ExtractOptions = ExtractOpti
         raise RuntimeError(
             f"{exc}. The fit has no zero crossing: the kernel {surface.kernel!r} may not suit the surface constraints' "
             f"spacing {spacing:.3g} (box units; leave --delta, --tau and --sigma out for the defaults), or smoothing may "
-            f"swamp the data (lambda_surface {lam:g} vs phi(0) = {surface.kernel.value_at_zero:.3g}; lower --lambda-surface), "
+            f"swamp the data (lambda_surface {lam:g} vs phi(0) = {surface.kernel.value_at_zero:.3g}; lower lambda_surface, --lambda-surface), "
             "or check the normals/exterior constraints"
         ) from None
 
