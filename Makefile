@@ -36,6 +36,7 @@ bench-tiles: $(SETUP)
 bench-tiles-large: $(SETUP)
 	$(PY) benchmarks/tiles.py --large --depth11
 
+# The paper's figures, the robustness study and the settings sweep: long (start it and come back much later).
 bench-paper: $(SETUP)
 	$(PY) benchmarks/paper/run_all.py --out results/paper
 
