@@ -112,3 +112,17 @@ def test_extract_mesh_auto_follows_the_constraint_spacing(monkeypatch):
     assert used[0] == extract.auto_resolution(spacing_of_fit) == min(max(round(2 * a["cells_per_spacing"] / spacing_of_fit),
                                                                           a["min_resolution"]), a["max_resolution"])
     assert used[1:] == [a["max_resolution"], a["min_resolution"]]
+
+
+def test_every_number_in_the_readme_option_table_is_a_value_of_the_tables():
+    """The README's option table (tests/test_readme.py checks its options) says the same numbers as the code."""
+    from conftest import REPO
+    from o3drbf.options import RegistrationOptions
+
+    text = (REPO / "README.md").read_text()
+    start = text.index("| option | meaning | default |")
+    table = text[start:text.index("\n\n", start)]
+    allowed = table_values() | {0.0, 1.0, 2.0, 3.0, 100 * RegistrationOptions().min_gain}
+    for row in table.splitlines()[2:]:
+        for token in NUMBER.findall(re.sub(r"\]\(#[^)]*\)", "]", row).replace("x2x2", "")):
+            assert float(token.rstrip(",").replace(",", "")) in allowed, (token, row)
