@@ -193,7 +193,9 @@ QUIET_DRIVER = textwrap.dedent(
     small = ["--surface-count", "300", "--resolution", "24"]
     for name, argv in [("obj -q", ["reconstruct", f"{d}/torus.ply", "-o", f"{d}/a.obj", "-q", *small]),
                        ("plain", ["reconstruct", f"{d}/torus.ply", "-o", f"{d}/b.ply", *small]),
-                       ("verbose", ["reconstruct", f"{d}/torus.ply", "-o", f"{d}/c.ply", "-v", *small])]:
+                       ("verbose", ["reconstruct", f"{d}/torus.ply", "-o", f"{d}/c.ply", "-v", *small]),
+                       ("tiles", ["reconstruct", f"{d}/torus.ply", "-o", f"{d}/t.ply", "--tiles", "2", "--workers", "1", "-q",
+                                  "--resolution", "24"])]:
         for stream in (sys.stdout, sys.stderr):
             print(f"=== {name}", file=stream, flush=True)
         code = main(argv)
@@ -204,8 +206,9 @@ QUIET_DRIVER = textwrap.dedent(
 
 
 def test_only_o3drbf_lines_without_v_and_nothing_with_q(tmp_path):
-    """-q: an OBJ output (Open3D: "Write OBJ can not include triangle normals") prints nothing at all;
-    without -v, Dask's log records are dropped and o3drbf's warnings kept; with -v both are shown."""
+    """-q: an OBJ output (Open3D: "Write OBJ can not include triangle normals") prints nothing at all, nor does
+    --tiles on a real Dask LocalCluster (some 30 lines of Dask's before); without -v, Dask's log records are
+    dropped and o3drbf's warnings kept; with -v both are shown."""
     from o3drbf.io.files import write_points
     from o3drbf.synthetic.shapes import Torus
 
@@ -213,9 +216,9 @@ def test_only_o3drbf_lines_without_v_and_nothing_with_q(tmp_path):
     write_points(tmp_path / "torus.ply", p, n)
     env = dict(os.environ, PYTHONPATH=str(REPO), O3DRBF_NO_PROGRESS="1", OMP_NUM_THREADS="2")
     proc = subprocess.run([sys.executable, "-c", QUIET_DRIVER, str(tmp_path)], capture_output=True, text=True, env=env, timeout=300)
-    assert proc.returncode == 0 and proc.stdout.count("=== exit 0") == 3, proc.stdout[-2000:] + proc.stderr[-2000:]
-    out = dict(zip(*[iter(re.split(r"^=== (obj -q|plain|verbose)\n", proc.stdout, flags=re.M)[1:])] * 2))
-    err = dict(zip(*[iter(re.split(r"^=== (obj -q|plain|verbose)\n", proc.stderr, flags=re.M)[1:])] * 2))
+    assert proc.returncode == 0 and proc.stdout.count("=== exit 0") == 4, proc.stdout[-2000:] + proc.stderr[-2000:]
+    out = dict(zip(*[iter(re.split(r"^=== (obj -q|plain|verbose|tiles)\n", proc.stdout, flags=re.M)[1:])] * 2))
+    err = dict(zip(*[iter(re.split(r"^=== (obj -q|plain|verbose|tiles)\n", proc.stderr, flags=re.M)[1:])] * 2))
     assert (tmp_path / "a.obj").is_file()
     assert out["obj -q"].splitlines() == ["open3d verbosity Error", "=== exit 0"], out["obj -q"]
     assert err["obj -q"].splitlines() == ["o3drbf: a warning of o3drbf's own"], err["obj -q"]
@@ -224,5 +227,6 @@ def test_only_o3drbf_lines_without_v_and_nothing_with_q(tmp_path):
     shown = err["verbose"].splitlines()
     assert "o3drbf: Scheduler at: tcp://127.0.0.1:1" in shown and "o3drbf: a warning of o3drbf's own" in shown
     assert "o3drbf: Worker process still alive after 4.0 seconds, killing" in shown
+    assert err["tiles"] == "" and out["tiles"].startswith("=== exit 0"), err["tiles"][-2000:]  # a real LocalCluster started and stopped
     before = re.search(r"open3d verbosity before (\w+)", proc.stdout).group(1)
     assert proc.stdout.rstrip().endswith(f"open3d verbosity after {before}")  # restored after the commands
