@@ -40,14 +40,11 @@ def add_option_arguments(parser: argparse.ArgumentParser) -> None:
 
     :func:`options_from_args` turns the parsed values back into :class:`~o3drbf.options.Options`.
     """
-    from o3drbf.options import (AUTO_SIZES, DENOISE_MIN_NOISE, MAX_RESOLUTION, OUTLIER_METHODS, PAPER_VALUES, REGISTER_METHODS, SOLVER_METHODS,
-                                count_or_auto)
+    from o3drbf.options import DENOISE_MIN_NOISE, MAX_RESOLUTION, OUTLIER_METHODS, PAPER_VALUES, REGISTER_METHODS, SOLVER_METHODS, count_or_auto
     from o3drbf.rbf.kernels import KERNELS
     from o3drbf.solvers import DENSE_AUTO_MAX
 
-    a = AUTO_SIZES
-
-    d = DEFAULTS
+    a, d = AUTO_SIZES, DEFAULTS
     g = parser.add_argument_group("kernel and parameters (lengths in the 2x2x2 box the data are normalized into)")
     g.add_argument("--kernel", "--basis", dest="kernel", default=d["kernel"], choices=list(KERNELS),
                    help="radial basis function (default %(default)s)")
