@@ -59,7 +59,7 @@ def test_automatic_sizes_in_the_help_are_the_table():
     assert f"points / {a['points_per_constraint']}, between {a['min_constraints']:,} and {a['max_constraints']:,}" in option(rec, "--surface-count").help
     resolution = option(rec, "--resolution").help
     assert f"at most {MAX_RESOLUTION}" in resolution and f"{a['min_resolution']} to {a['max_resolution']}" in resolution
-    assert f"one per {TILE_DEFAULTS['points_per_tile']:,} points" in option(rec, "--tiles").help
+    assert f"one tile per {TILE_DEFAULTS['points_per_tile']:,} points" in option(rec, "--tiles").help
 
 
 def test_one_resolution_limit_for_the_options_and_the_viewer():
