@@ -76,6 +76,10 @@ SLOW_TESTS = {
         "test_timing_300k_triangles"
     },
     "test_kernels.py": {"test_kernel_matrix_is_positive_definite", "test_tabulated_kernel_matches_the_exact_one"},
+    "test_lidar.py": {
+        "test_cli_tiles_on_e57_leaves_the_scanners_out_in_one_line", "test_e57_reconstructs_the_torus_with_its_scanners",
+        "test_las_and_laz_read_back_and_reconstruct_a_sphere"
+    },
     "test_options.py": {
         "test_a_kernel_defined_in_a_test_works_end_to_end", "test_automatic_sizes_follow_the_data",
         "test_stages_alone_give_what_reconstruct_gives"
@@ -113,6 +117,10 @@ SLOW_TESTS = {
         "test_per_point_smoothing_obeys_the_equations"
     },
     "test_sources.py": {"test_voxel_shell_to_points_and_reconstruction"},
+    "test_startup.py": {
+        "test_importing_o3drbf_and_open3d_leaves_dash_and_plotly_unloaded_until_used", "test_open3d_imported_first_is_left_alone",
+        "test_report_json_has_the_summary_and_every_stage"
+    },
     "test_viewer.py": {
         "test_a_mesh_is_shown_as_it_is_coloured_by_a_field", "test_dense_points_leave_the_surface_visible",
         "test_distance_to_another_mesh_colours_both_panels_with_one_range", "test_help_and_import_need_no_display_or_pyvista",
