@@ -5,7 +5,7 @@ OUT     ?= out
 TEMPLE  ?= ../shared/data/middlebury_templeSparseRing
 export OMP_NUM_THREADS ?= 2
 
-.PHONY: setup demo test samples bench bench-tiles bench-tiles-large bench-paper figures clean
+.PHONY: setup demo test test-fast samples bench bench-tiles bench-tiles-large bench-paper figures clean
 
 setup: $(SETUP)
 
@@ -21,6 +21,10 @@ samples: $(SETUP)
 test: $(SETUP)
 	$(PY) -m pytest -q -rs
 
+# The tests not marked slow (tests/conftest.py lists them): under a minute on 2 cores.
+test-fast: $(SETUP)
+	$(PY) -m pytest -q -m "not slow" --durations=5
+
 bench: $(SETUP)
 	$(PY) benchmarks/run.py
 
@@ -32,6 +36,7 @@ bench-tiles: $(SETUP)
 bench-tiles-large: $(SETUP)
 	$(PY) benchmarks/tiles.py --large --depth11
 
+# The paper's figures, the robustness study and the settings sweep: long (start it and come back much later).
 bench-paper: $(SETUP)
 	$(PY) benchmarks/paper/run_all.py --out results/paper
 

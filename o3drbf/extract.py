@@ -17,7 +17,21 @@ import numpy as np
 from o3drbf.progress import progress_bar
 from o3drbf.validation import check_number
 
-__all__ = ["extract_mesh", "evaluate_grid", "refine_on_edges", "grid_for", "mesh_evaluator", "GRID_EVALUATION_MIN", "MESH_EPS"]
+__all__ = ["extract_mesh", "evaluate_grid", "refine_on_edges", "grid_for", "mesh_evaluator", "GRID_EVALUATION_MIN", "MESH_EPS",
+           "AUTO_RESOLUTION", "auto_resolution"]
+
+#: ``resolution="auto"`` (the default here and in ``o3drbf.DEFAULTS``, whose
+#: ``AUTO_SIZES`` holds these): marching-cubes cells per surface-constraint
+#: spacing, clipped to a range.
+AUTO_RESOLUTION = {"cells_per_spacing": 2.5, "min_resolution": 64, "max_resolution": 256}
+
+
+def auto_resolution(spacing_box: float) -> int:
+    """The marching-cubes resolution ``resolution="auto"`` picks for a constraint spacing (box units; not > 0: the minimum)."""
+    a = AUTO_RESOLUTION
+    if not spacing_box > 0:
+        return a["min_resolution"]
+    return int(min(max(round(2.0 * a["cells_per_spacing"] / spacing_box), a["min_resolution"]), a["max_resolution"]))
 
 #: From this many centres on, a surface without its own evaluator is meshed with
 #: the grid (particle-mesh) sum of o3drbf.solvers.fast rather than the direct
@@ -313,7 +327,7 @@ def extraction_box(normalization, bounds, voxel_size=None):
 
 def extract_mesh(
     surface,
-    resolution: int | None = 128,
+    resolution: int | str = "auto",
     voxel_size: float | None = None,
     bounds=None,
     level: float = 0.0,
@@ -329,8 +343,11 @@ def extract_mesh(
     Parameters
     ----------
     surface : ImplicitSurface
-    resolution : int
-        Grid cells along the longest side of ``bounds`` (2..2048).
+    resolution : int or "auto"
+        Grid cells along the longest side of ``bounds`` (2..2048); "auto"
+        (default): :func:`auto_resolution` of the surface's constraint
+        spacing (``surface.metadata["mean_spacing"]``; without it, the
+        smallest automatic resolution).
     voxel_size : float, optional
         Grid spacing in data units; overrides ``resolution``.
     bounds : (2, 3) array_like, optional
@@ -381,6 +398,8 @@ def extract_mesh(
         c = norm.inverse(surface.centres)
         bounds = [c.min(axis=0), c.max(axis=0)]
     box, h_box = extraction_box(norm, bounds, voxel_size)
+    if isinstance(resolution, str) and resolution == "auto":
+        resolution = auto_resolution(float(surface.metadata.get("mean_spacing", float("nan"))))
     resolution_ = resolution if voxel_size is None else None
     # Round cell counts to a multiple of 8 so the narrow band has coarse levels.
     origin, h, shape = grid_for(box, resolution_, h_box, multiple=8 if band else 1)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields, replace
 
+from o3drbf.extract import AUTO_RESOLUTION, auto_resolution
 from o3drbf.validation import check_choice, check_number
 
 __all__ = [
@@ -24,6 +25,7 @@ __all__ = [
     "VIEWER_OVERRIDES",
     "VIEWER_DISPLAY",
     "AUTO_SIZES",
+    "MAX_RESOLUTION",
     "auto_surface_count",
     "auto_resolution",
     "UNTILED_MEMORY",
@@ -124,9 +126,7 @@ AUTO_SIZES = {
     "max_constraints": 30000,  # ... at most this many
     "noisy_full_rate_max": 10000,  # noisy (denoised) scans: points / 3 up to this many, ...
     "noisy_points_per_constraint": 6,  # ... else points / 6 (at least the count above)
-    "cells_per_spacing": 2.5,  # marching-cubes cells per constraint spacing ...
-    "min_resolution": 64,
-    "max_resolution": 256,
+    **AUTO_RESOLUTION,  # marching-cubes cells per constraint spacing, between a minimum and a maximum (o3drbf.extract)
 }
 
 
@@ -145,6 +145,12 @@ DENOISE_MIN_NOISE = 0.05
 SPECK_SPACINGS = 2.0
 
 
+#: The finest marching-cubes grid any entry point accepts (cells along the
+#: longest side): ``resolution`` of :class:`ExtractOptions`, ``--resolution``
+#: of ``o3drbf reconstruct`` and of the viewer.
+MAX_RESOLUTION = 1024
+
+
 def auto_surface_count(n_points: int, noisy: bool = False) -> int:
     """The surface-constraint count ``surface_count="auto"`` picks for ``n_points`` points (``noisy``: to be denoised)."""
     a = AUTO_SIZES
@@ -152,14 +158,6 @@ def auto_surface_count(n_points: int, noisy: bool = False) -> int:
     if noisy:
         count = min(count, max(a["noisy_full_rate_max"], n_points // a["noisy_points_per_constraint"]))
     return int(min(max(count, a["min_constraints"]), a["max_constraints"]))
-
-
-def auto_resolution(spacing_box: float) -> int:
-    """The marching-cubes resolution ``resolution="auto"`` picks for a constraint spacing (box units)."""
-    a = AUTO_SIZES
-    if not spacing_box > 0:
-        return a["min_resolution"]
-    return int(min(max(round(2.0 * a["cells_per_spacing"] / spacing_box), a["min_resolution"]), a["max_resolution"]))
 
 
 def extraction_memory(resolution: int) -> int:
@@ -409,8 +407,9 @@ class ConstraintOptions:
     ----------
     surface_count : int, "auto" or None
         Poisson-disc subsample to about this many surface constraints (the
-        paper: 2,000-3,000); "auto": :func:`auto_surface_count` (points / 3,
-        between 3,000 and 30,000; noisy scans: points / 3 up to 10,000, else points / 6); None keeps every point (or uses ``surface_radius``).
+        paper: 2,000-3,000); "auto": :func:`auto_surface_count` (a fraction
+        of the points, clipped; the rates and bounds are :data:`AUTO_SIZES`);
+        None keeps every point (or uses ``surface_radius``).
     surface_radius : float or None
         Poisson-disc radius (box units) instead of a count.
     exterior_ratio : float
@@ -539,8 +538,9 @@ class ExtractOptions:
     Attributes
     ----------
     resolution : int or "auto"
-        Cells along the longest side; "auto": :func:`auto_resolution` (2.5
-        cells per surface-constraint spacing, within ``AUTO_SIZES["min_resolution"]`` and ``["max_resolution"]``).
+        Cells along the longest side, at most :data:`MAX_RESOLUTION`; "auto":
+        :func:`auto_resolution` (cells per surface-constraint spacing, clipped:
+        :data:`AUTO_SIZES`).
     voxel_size : float or None
         Grid spacing in data units (overrides ``resolution``).
     bounds : (2, 3) array_like or None
@@ -553,7 +553,7 @@ class ExtractOptions:
 
     def validate(self) -> "ExtractOptions":
         if self.resolution != "auto":
-            check_number("resolution", self.resolution, low=2, high=1024, integer=True)
+            check_number("resolution", self.resolution, low=2, high=MAX_RESOLUTION, integer=True)
             from o3drbf.solvers.base import available_memory, gigabytes
 
             need = extraction_memory(int(self.resolution))

@@ -14,7 +14,7 @@ reference.ply      the true torus mesh (for compare --truth)
 
 The README's command-line examples use these files:
 
-    make samples && cd out/samples && o3drbf reconstruct scan.ply --cameras cams.json -o mesh.ply
+    make samples && .venv/bin/o3drbf reconstruct out/samples/points.ply --cameras out/samples/cams.json -o out/scan_mesh.ply
 """
 
 from __future__ import annotations

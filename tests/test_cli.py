@@ -97,6 +97,25 @@ def test_usage_errors_and_entry_point(scan):
     assert done.returncode == 0 and "o3drbf" in done.stdout
 
 
+@pytest.mark.parametrize("argv, expected", [
+    (["reconstruct", "x.ply", "--surface-cout", "10"], "o3drbf: error: unknown option --surface-cout; did you mean --surface-count?"),
+    (["reconstruct", "x.ply", "-o", "m.ply", "--lamda-surface=0.1"], "o3drbf: error: unknown option --lamda-surface; did you mean --lambda-surface?"),
+    (["compare", "x.ply", "--metods", "poisson"], "o3drbf: error: unknown option --metods; did you mean --methods?"),
+    (["view", "x.ply", "--resolutoin", "32"], "o3drbf: error: unknown option --resolutoin; did you mean --resolution?"),
+    (["reconstruct", "x.ply", "-o", "m.ply", "--zzzz"], "o3drbf: error: unknown option --zzzz (o3drbf reconstruct --help lists the options)"),
+])
+def test_a_misspelt_option_is_one_line_with_a_suggestion(argv, expected, capsys):
+    """Not argparse's whole usage: one line naming the option and the closest valid one, exit 2 (before the missing -o is reported)."""
+    assert main(argv) == 2
+    captured = capsys.readouterr()
+    assert captured.err == expected + "\n" and captured.out == ""
+
+
+def test_a_unique_prefix_of_an_option_is_still_accepted(scan, tmp_path):
+    out = tmp_path / "prefix.ply"
+    assert main(["reconstruct", str(scan / "torus.ply"), "-o", str(out), "--surface-c", "300", "--resol", "24", "-q"]) == 0
+
+
 def test_outputs_get_ordinary_permissions(scan):
     import os
     import stat

@@ -157,3 +157,76 @@ def test_shown_rounds_numbers_and_drops_numpy_wrappers():
     assert shown("abc") == "'abc'"
     with pytest.raises(ValueError, match=r"^delta must be in \(0, inf\], got -2\.91215$"):
         check_number("delta", np.float64(-2.912149660512057), low=0, low_open=True)
+
+
+def test_no_open3d_or_poisson_chatter_in_any_command(printed):
+    """Open3D's own messages (printed by its C++ straight to stdout) are at Error level while a command runs:
+    none reaches compare's or view's Open3D Poisson, nor any other command."""
+    for text in printed:
+        assert "[Open3D WARNING]" not in text and "bad average roots" not in text, text[-2000:]
+
+
+QUIET_DRIVER = textwrap.dedent(
+    """
+    import logging, sys
+    import open3d as o3d
+    import o3drbf.pipeline
+    from o3drbf.cli.commands import main
+
+    original = o3drbf.pipeline.reconstruct
+
+    def level():
+        return next(name for name in ("Error", "Warning", "Info", "Debug")
+                    if o3d.utility.get_verbosity_level() == getattr(o3d.utility.VerbosityLevel, name))
+
+    def reconstruct(*args, **kwargs):  # what Dask's scheduler and nannies log while a LocalCluster starts and stops
+        logging.getLogger("distributed.scheduler").info("Scheduler at: tcp://127.0.0.1:1")
+        logging.getLogger("distributed.nanny").warning("Worker process still alive after 4.0 seconds, killing")
+        logging.getLogger("o3drbf").warning("a warning of o3drbf's own")
+        print(f"open3d verbosity {level()}", flush=True)
+        return original(*args, **kwargs)
+
+    o3drbf.pipeline.reconstruct = reconstruct
+    logging.getLogger("distributed").setLevel(logging.INFO)  # as distributed's configuration does when it is imported
+    d = sys.argv[1]
+    print(f"open3d verbosity before {level()}", flush=True)
+    small = ["--surface-count", "300", "--resolution", "24"]
+    for name, argv in [("obj -q", ["reconstruct", f"{d}/torus.ply", "-o", f"{d}/a.obj", "-q", *small]),
+                       ("plain", ["reconstruct", f"{d}/torus.ply", "-o", f"{d}/b.ply", *small]),
+                       ("verbose", ["reconstruct", f"{d}/torus.ply", "-o", f"{d}/c.ply", "-v", *small]),
+                       ("tiles", ["reconstruct", f"{d}/torus.ply", "-o", f"{d}/t.ply", "--tiles", "2", "--workers", "1", "-q",
+                                  "--resolution", "24"])]:
+        for stream in (sys.stdout, sys.stderr):
+            print(f"=== {name}", file=stream, flush=True)
+        code = main(argv)
+        print(f"=== exit {code}", flush=True)
+    print(f"open3d verbosity after {level()}", flush=True)
+    """
+)
+
+
+def test_only_o3drbf_lines_without_v_and_nothing_with_q(tmp_path):
+    """-q: an OBJ output (Open3D: "Write OBJ can not include triangle normals") prints nothing at all, nor does
+    --tiles on a real Dask LocalCluster (some 30 lines of Dask's before); without -v, Dask's log records are
+    dropped and o3drbf's warnings kept; with -v both are shown."""
+    from o3drbf.io.files import write_points
+    from o3drbf.synthetic.shapes import Torus
+
+    p, n = Torus(0.6, 0.25).sample(1500, noise=0.002, seed=1)
+    write_points(tmp_path / "torus.ply", p, n)
+    env = dict(os.environ, PYTHONPATH=str(REPO), O3DRBF_NO_PROGRESS="1", OMP_NUM_THREADS="2")
+    proc = subprocess.run([sys.executable, "-c", QUIET_DRIVER, str(tmp_path)], capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 0 and proc.stdout.count("=== exit 0") == 4, proc.stdout[-2000:] + proc.stderr[-2000:]
+    out = dict(zip(*[iter(re.split(r"^=== (obj -q|plain|verbose|tiles)\n", proc.stdout, flags=re.M)[1:])] * 2))
+    err = dict(zip(*[iter(re.split(r"^=== (obj -q|plain|verbose|tiles)\n", proc.stderr, flags=re.M)[1:])] * 2))
+    assert (tmp_path / "a.obj").is_file()
+    assert out["obj -q"].splitlines() == ["open3d verbosity Error", "=== exit 0"], out["obj -q"]
+    assert err["obj -q"].splitlines() == ["o3drbf: a warning of o3drbf's own"], err["obj -q"]
+    assert "open3d verbosity Error" in out["plain"] and "open3d verbosity Warning" in out["verbose"]
+    assert err["plain"].splitlines() == ["o3drbf: a warning of o3drbf's own"], err["plain"]
+    shown = err["verbose"].splitlines()
+    assert "o3drbf: Scheduler at: tcp://127.0.0.1:1" in shown and "o3drbf: a warning of o3drbf's own" in shown
+    assert "o3drbf: Worker process still alive after 4.0 seconds, killing" in shown
+    assert err["tiles"] == "" and out["tiles"].startswith("=== exit 0"), err["tiles"][-2000:]  # a real LocalCluster started and stopped
+    before = re.search(r"open3d verbosity before (\w+)", proc.stdout).group(1)
+    assert proc.stdout.rstrip().endswith(f"open3d verbosity after {before}")  # restored after the commands

@@ -5,8 +5,8 @@ import re
 from conftest import REPO
 
 
-def blocks():
-    text = (REPO / "README.md").read_text()
+def blocks(name: str = "README.md"):
+    text = (REPO / name).read_text()
     return re.findall(r"```python\n(.*?)```", text, flags=re.S)
 
 
@@ -21,6 +21,41 @@ def test_readme_python_examples_run():
     assert len(code) >= 3
     for i, block in enumerate(code):
         exec(compile(block, f"README.md python block {i}", "exec"), {})
+
+
+def test_docs_python_examples_run():
+    """docs/python.md holds the examples the README's guide leaves out; they run too."""
+    code = blocks("docs/python.md")
+    assert len(code) >= 3
+    for i, block in enumerate(code):
+        exec(compile(block, f"docs/python.md python block {i}", "exec"), {})
+
+
+def test_readme_is_a_short_guide_whose_inputs_exist():
+    """At most 450 lines; every input it names is written by make demo / make samples, or is in ../shared/data."""
+    import importlib.util
+
+    from conftest import SHARED_DATA
+
+    text = (REPO / "README.md").read_text()
+    assert len(text.splitlines()) <= 450
+    spec = importlib.util.spec_from_file_location("generate", REPO / "samples" / "generate.py")
+    generate = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(generate)
+    samples = set(generate.SAMPLES) | {"scan.ply", "points.ply", "cams.json", "scan.json", "reference.ply"}
+    demo = (REPO / "samples" / "demo.py").read_text()
+    commands = "\n".join(re.findall(r"```sh\n(.*?)```", text, flags=re.S))
+    for name in re.findall(r"out/samples/([\w.]+)", commands):
+        assert name in samples, name
+    for name in re.findall(r"(?<![\w/])out/([\w.]+\.(?:ply|xyz|json))\b", commands):
+        written = re.search(rf"-o out/{re.escape(name)}\b", commands) or f'"{name}"' in demo
+        assert written, f"out/{name} is neither written by an earlier command nor by make demo"
+    shared = re.findall(r"\.\./shared/data/([\w./-]+)", text)
+    assert shared
+    if SHARED_DATA.is_dir():
+        for path in shared:
+            assert (SHARED_DATA / path).exists(), path
+    assert "bunny/data/bun.conf" not in text.replace("stanford_bunny/data/bun.conf", "")
 
 
 def test_readme_option_table_matches_the_parser():

@@ -49,7 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
-from o3drbf.options import VIEWER_DISPLAY
+from o3drbf.options import MAX_RESOLUTION, VIEWER_DISPLAY
 from o3drbf.viewers.geometry import camera_frusta, look_at, subsample, view_up, wind_like_normals
 from o3drbf.viewers.keys import LayerToggles, own_keys, pick_under_mouse, press_key
 from o3drbf.viewers.inputs import ViewInput, load_view_input, model_constraints
@@ -133,7 +133,7 @@ def add_view_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPars
     g.add_argument("--delta", type=float, default=None, help="multi-order basis: first-order weight (default: --auto)")
     g.add_argument("--tau", type=float, default=None, help="multi-order basis: third-order weight (default: --auto)")
     g.add_argument("--level", type=float, default=0.0, help="iso-level of the shown surface (default %(default)s)")
-    g.add_argument("--resolution", type=int, default=start["resolution"], help="marching-cubes cells along the longest side, 2..2048 (default %(default)s)")
+    g.add_argument("--resolution", type=int, default=start["resolution"], help=f"marching-cubes cells along the longest side, 2..{MAX_RESOLUTION} (default %(default)s)")
     g = parser.add_argument_group("fit")
     g.add_argument("--surface-count", type=int, default=start["surface_count"], help="about this many surface constraints (default %(default)s)")
     g.add_argument("--outliers", default=start["outliers"], choices=list(OUTLIER_METHODS), help="outlier handling (as o3drbf reconstruct; default %(default)s)")
@@ -163,7 +163,7 @@ def _params_from_args(args) -> FitParams:
         tau=opt("tau", args.tau, low=0.0, low_open=True),
         auto=bool(args.auto),
         level=check_number("level", args.level),
-        resolution=check_number("resolution", args.resolution, low=2, high=2048, integer=True),
+        resolution=check_number("resolution", args.resolution, low=2, high=MAX_RESOLUTION, integer=True),
         surface_count=check_number("surface_count", args.surface_count, low=10, integer=True),
         outliers=args.outliers,
         seed=args.seed,

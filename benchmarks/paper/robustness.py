@@ -315,7 +315,7 @@ def summary(rows) -> str:
 
 
 def by_solid(rows) -> str:
-    """One line per solid: cells won with 3 and with 6 views, and the median Chamfer ratio to the better Poisson (the README's table)."""
+    """One line per solid: cells won with 3 and with 6 views, and the median Chamfer ratio to the better Poisson (the table in docs/studies.md)."""
     import numpy as np
 
     by = {_key(r): r for r in rows}

@@ -40,10 +40,11 @@ def add_option_arguments(parser: argparse.ArgumentParser) -> None:
 
     :func:`options_from_args` turns the parsed values back into :class:`~o3drbf.options.Options`.
     """
-    from o3drbf.options import OUTLIER_METHODS, PAPER_VALUES, REGISTER_METHODS, SOLVER_METHODS, count_or_auto
+    from o3drbf.options import DENOISE_MIN_NOISE, MAX_RESOLUTION, OUTLIER_METHODS, PAPER_VALUES, REGISTER_METHODS, SOLVER_METHODS, count_or_auto
     from o3drbf.rbf.kernels import KERNELS
+    from o3drbf.solvers import DENSE_AUTO_MAX
 
-    d = DEFAULTS
+    a, d = AUTO_SIZES, DEFAULTS
     g = parser.add_argument_group("kernel and parameters (lengths in the 2x2x2 box the data are normalized into)")
     g.add_argument("--kernel", "--basis", dest="kernel", default=d["kernel"], choices=list(KERNELS),
                    help="radial basis function (default %(default)s)")
@@ -71,7 +72,8 @@ def add_option_arguments(parser: argparse.ArgumentParser) -> None:
                    help="iteratively reweighted fit: down-weight surface constraints far from the surface (default: on)")
     g = parser.add_argument_group("constraints")
     g.add_argument("--surface-count", type=count_or_auto, default=d["surface_count"], metavar="auto|N",
-                   help="Poisson-disc subsample to about N surface constraints; auto: points / 3, between 3,000 and 30,000 (default %(default)s)")
+                   help=f"Poisson-disc subsample to about N surface constraints; auto: points / {a['points_per_constraint']}, "
+                   f"between {a['min_constraints']:,} and {a['max_constraints']:,} (default %(default)s)")
     g.add_argument("--surface-radius", type=float, default=d["surface_radius"], help="Poisson-disc radius (box units) instead of --surface-count")
     g.add_argument("--all-points", action="store_true", help="use every point as a surface constraint (no subsampling)")
     g.add_argument("--exterior-ratio", type=float, default=d["exterior_ratio"], help="exterior constraints per surface constraint (default %(default)s)")
@@ -79,13 +81,13 @@ def add_option_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--sphere-count", type=int, default=d["sphere_count"], help="exterior constraints on a sphere around the data (default %(default)s)")
     g.add_argument("--denoise", type=_auto_or_bool, default=d["denoise"], metavar="auto|on|off",
                    help="move the surface constraints onto local quadric fits of all the points; auto: when the noise "
-                   "exceeds 0.05 constraint spacings (default %(default)s)")
+                   f"exceeds {DENOISE_MIN_NOISE:g} constraint spacings (default %(default)s)")
     g = parser.add_argument_group("solve and mesh")
     g.add_argument("--solver", default=d["solver"], choices=list(SOLVER_METHODS),
-                   help="auto: dense up to a few thousand constraints, fast above (default %(default)s)")
+                   help=f"auto: dense up to {DENSE_AUTO_MAX:,} constraints (when it fits in memory), fast above (default %(default)s)")
     g.add_argument("--resolution", type=count_or_auto, default=d["resolution"], metavar="auto|N",
-                   help=f"marching-cubes cells along the longest side; auto: {AUTO_SIZES['cells_per_spacing']:g} per constraint spacing, "
-                   f"{AUTO_SIZES['min_resolution']} to {AUTO_SIZES['max_resolution']} (default %(default)s)")
+                   help=f"marching-cubes cells along the longest side, at most {MAX_RESOLUTION}; auto: {a['cells_per_spacing']:g} per "
+                   f"constraint spacing, {a['min_resolution']} to {a['max_resolution']} (default %(default)s)")
     g.add_argument("--voxel-size", type=float, default=d["voxel_size"], help="grid spacing in data units (overrides --resolution)")
     g = parser.add_argument_group("confidence (off by default)")
     g.add_argument("--confidence", action="store_true", default=d["confidence"],
@@ -149,10 +151,12 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--no-color", action="store_true", help="do not colour the mesh from the input points' colours (used when the input has colours)")
     g.add_argument("-q", "--quiet", action="store_true", help="no progress bars or summary")
     g.add_argument("-v", "--verbose", action="store_true", help="log each step")
+    from o3drbf.options import TILE_DEFAULTS
+
     g = rec.add_argument_group("tiles (beyond one machine; needs pip install 'o3drbf[tiles]')")
     g.add_argument("--tiles", type=_tiles_value, default=None, metavar="auto|N",
                    help="tiled reconstruction over N k-d tiles blended by a partition of unity (auto: untiled when the input fits in "
-                   "memory, said in one line; else one tile per 60,000 points)")
+                   f"memory, said in one line; else one tile per {TILE_DEFAULTS['points_per_tile']:,} points)")
     g.add_argument("--scheduler", default=None, metavar="ADDR",
                    help="Dask scheduler address for --tiles (default: a local cluster of --workers processes; 'synchronous': in this process)")
     g.add_argument("--workers", type=_positive_int, default=2, help="workers of the local Dask cluster with --tiles (default %(default)s)")
@@ -492,15 +496,24 @@ def summary(result, points, input_path, output_path, model_path=None, seconds=No
 
 def _main(argv: list[str] | None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    misspelt = unknown_option_message(parser, argv)  # before argparse's own errors, which print the whole usage
+    if misspelt:
+        print(f"o3drbf: error: {misspelt}", file=sys.stderr)
+        return 2
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:
+        print(f"o3drbf: error: unexpected argument(s) {' '.join(unknown)} (o3drbf {args.command} --help lists the usage)", file=sys.stderr)
+        return 2
     _check_args(parser, args)
     logging.basicConfig(level=logging.WARNING, format="o3drbf: %(message)s", stream=sys.stderr)
     from tqdm.contrib.logging import logging_redirect_tqdm
 
+    verbose = getattr(args, "verbose", False)
     try:
-        # log lines (warnings too) never break into a progress bar; -v shows
-        # o3drbf's steps, not the INFO chatter of Dask and other libraries
-        with logging_redirect_tqdm(), _warnings_as_log_lines(), _verbose(getattr(args, "verbose", False)):
+        # log lines (warnings too) never break into a progress bar; without -v
+        # only o3drbf's own lines are shown (not Dask's nor Open3D's chatter)
+        with logging_redirect_tqdm(), _only_o3drbf_logs(verbose), _open3d_quiet(verbose), _warnings_as_log_lines(), _verbose(verbose):
             return _dispatch(parser, args)
     except MemoryError as exc:
         print(f"o3drbf: error: {_memory_message(exc)}", file=sys.stderr)
@@ -521,6 +534,75 @@ def _main(argv: list[str] | None) -> int:
         )
         return 1
     return 2
+
+
+def unknown_option_message(parser: argparse.ArgumentParser, argv: list[str]) -> str | None:
+    """One line for the first ``--option`` of ``argv`` the command does not know, with the closest valid one; None if all are known.
+
+    ``reconstruct x.ply --surface-cout 10`` -> "unknown option --surface-cout; did you mean --surface-count?"
+    (:func:`difflib.get_close_matches` over the command's options).  A unique prefix of an
+    option is known, as argparse takes it; everything after ``--`` is a value.
+    """
+    import difflib
+
+    command = parser
+    sub = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
+    name = next((a for a in argv if not a.startswith("-")), None)
+    if sub is not None and name in sub.choices:
+        command = sub.choices[name]
+    options = sorted({o for a in command._actions for o in a.option_strings if o.startswith("--")})
+    for arg in argv:
+        if arg == "--":
+            break
+        if not arg.startswith("--"):
+            continue
+        word = arg.split("=", 1)[0]
+        if word in options or sum(o.startswith(word) for o in options) == 1:
+            continue
+        if sum(o.startswith(word) for o in options) > 1:
+            continue  # ambiguous: argparse names the candidates
+        close = difflib.get_close_matches(word, options, n=1, cutoff=0.6)
+        if close:
+            return f"unknown option {word}; did you mean {close[0]}?"
+        return f"unknown option {word} ({command.prog} --help lists the options)"
+    return None
+
+
+class _OnlyO3drbf(logging.Filter):
+    """Pass o3drbf's own records, and other libraries' errors."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return record.name == "o3drbf" or record.name.startswith("o3drbf.") or record.levelno >= logging.ERROR
+
+
+@contextmanager
+def _only_o3drbf_logs(verbose: bool):
+    """Without -v, the log handlers show only o3drbf's lines: Dask's cluster start and stop
+    (some 30 INFO and WARNING lines) and other libraries' records that propagate to the root
+    logger are dropped; with -v everything is shown."""
+    handlers = [] if verbose else list(logging.getLogger().handlers)
+    only = _OnlyO3drbf()
+    for handler in handlers:
+        handler.addFilter(only)
+    try:
+        yield
+    finally:
+        for handler in handlers:
+            handler.removeFilter(only)
+
+
+@contextmanager
+def _open3d_quiet(verbose: bool):
+    """Open3D's own messages (printed straight to stdout, e.g. "Write OBJ can not include triangle
+    normals") at Error level while a command runs, Warning with -v; restored after."""
+    try:
+        import open3d as o3d
+    except ImportError:  # pragma: no cover - a dependency
+        yield
+        return
+    level = o3d.utility.VerbosityLevel.Warning if verbose else o3d.utility.VerbosityLevel.Error
+    with o3d.utility.VerbosityContextManager(level):
+        yield
 
 
 @contextmanager
