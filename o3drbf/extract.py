@@ -23,7 +23,7 @@ __all__ = ["extract_mesh", "evaluate_grid", "refine_on_edges", "grid_for", "mesh
 #: ``resolution="auto"`` (the default here and in ``o3drbf.DEFAULTS``, whose
 #: ``AUTO_SIZES`` holds these): marching-cubes cells per surface-constraint
 #: spacing, clipped to a range.
-AUTO_RESOLUTION = {"cells_per_spacing": 2.5, "min_resolution": 64, "max_resolution": 256}
+AUTO_RESOLUTION = {"cells_per_spacing": 2.0, "min_resolution": 64, "max_resolution": 256}
 
 
 def auto_resolution(spacing_box: float) -> int:

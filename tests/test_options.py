@@ -178,7 +178,7 @@ def test_automatic_sizes_follow_the_data():
     assert auto_surface_count(10**7) == 30_000
     # noisy scans: points / 3 up to 10,000, then points / 6
     assert [auto_surface_count(n, noisy=True) for n in (24_000, 45_000, 90_000, 10**7)] == [8000, 10_000, 15_000, 30_000]
-    assert auto_resolution(0.048) == 104 and auto_resolution(0.1) == 64 and auto_resolution(0.015) == 256 and auto_resolution(0.03) == 167
+    assert auto_resolution(0.048) == 83 and auto_resolution(0.1) == 64 and auto_resolution(0.012) == 256 and auto_resolution(0.03) == 133
     # One constraint per 3 points when clean (kept as they are); noisy (denoised): at most 10,000 here.
     from o3drbf.pipeline import build_constraints
     from o3drbf.pointset import PointSet
