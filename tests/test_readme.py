@@ -2,6 +2,8 @@
 
 import re
 
+import pytest
+
 from conftest import REPO
 
 
@@ -23,12 +25,13 @@ def test_readme_python_examples_run():
         exec(compile(block, f"README.md python block {i}", "exec"), {})
 
 
-def test_docs_python_examples_run():
-    """docs/python.md holds the examples the README's guide leaves out; they run too."""
-    code = blocks("docs/python.md")
-    assert len(code) >= 3
+@pytest.mark.parametrize("page, least", [("docs/python.md", 3), ("docs/lidar.md", 1)])
+def test_docs_python_examples_run(page, least):
+    """docs/python.md holds the examples the README's guide leaves out, docs/lidar.md the lidar one; they run too."""
+    code = blocks(page)
+    assert len(code) >= least
     for i, block in enumerate(code):
-        exec(compile(block, f"docs/python.md python block {i}", "exec"), {})
+        exec(compile(block, f"{page} python block {i}", "exec"), {})
 
 
 def test_readme_is_a_short_guide_whose_inputs_exist():
