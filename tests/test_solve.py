@@ -108,3 +108,25 @@ def test_bad_input_errors(rng):
         solve(ThinPlate(), np.c_[x[:, :2], np.zeros(50)], y)
     with pytest.raises(ValueError, match="at least 5 constraints"):
         solve(ThinPlate(), x[:4], y[:4])
+
+
+def test_dense_factorizations_take_one_blas_thread_only_on_a_busy_machine(monkeypatch):
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    from o3drbf.solvers import base
+
+    assert base.busy_machine(load=5.0, cores=2) and not base.busy_machine(load=2.4, cores=2)
+    assert not base.busy_machine(load=9.0, cores=1)  # one core: nothing to give up
+
+    def blas_threads():
+        return {i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}
+
+    with threadpool_limits(limits=2, user_api="blas"):
+        monkeypatch.setattr(base.os, "getloadavg", lambda: (50.0, 50.0, 50.0))
+        monkeypatch.setattr(base.os, "cpu_count", lambda: 2)
+        with base.dense_blas_threads():
+            assert blas_threads() == {1}
+        assert blas_threads() == {2}
+        monkeypatch.setattr(base.os, "getloadavg", lambda: (0.1, 0.1, 0.1))
+        with base.dense_blas_threads():
+            assert blas_threads() == {2}

@@ -3,7 +3,9 @@ memory accounting and the residual of the regularized system."""
 
 from __future__ import annotations
 
+import contextlib
 import math
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -11,7 +13,8 @@ import numpy as np
 from o3drbf.rbf.sums import kernel_sum
 
 __all__ = ["Solution", "ConvergenceWarning", "available_memory", "memory_limit_or_default", "dense_memory", "relative_residual",
-           "RESIDUAL_ROWS", "gigabytes"]
+           "RESIDUAL_ROWS", "gigabytes",
+           "busy_machine", "dense_blas_threads"]
 
 
 class ConvergenceWarning(UserWarning):
@@ -136,3 +139,41 @@ def relative_residual(kernel, centres, y, lam, q, w, p, rows: int | None = None,
     return float(math.sqrt(float(r1 @ r1 + r2 @ r2)) / denom)
 
 
+
+
+def busy_machine(load: float | None = None, cores: int | None = None) -> bool:
+    """Whether more work is waiting than there are cores: the 1-minute load average above ``cores + 0.5``.
+
+    Parameters
+    ----------
+    load : float, optional
+        Default: :func:`os.getloadavg`'s first value (unknown: not busy).
+    cores : int, optional
+        Default: :func:`os.cpu_count`.
+    """
+    if load is None:
+        try:
+            load = os.getloadavg()[0]
+        except (AttributeError, OSError):
+            return False
+    cores = (os.cpu_count() or 1) if cores is None else cores
+    return cores > 1 and load > cores + 0.5
+
+
+@contextlib.contextmanager
+def dense_blas_threads():
+    """One BLAS thread for a dense factorization on a busy machine (:func:`busy_machine`), else as configured.
+
+    Multi-threaded LAPACK factorizations spin-wait on each other's threads:
+    with the cores already taken they run many times slower than one thread.
+    """
+    if not busy_machine():
+        yield
+        return
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        yield
+        return
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield

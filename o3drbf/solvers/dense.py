@@ -7,6 +7,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from o3drbf.rbf.sums import kernel_matrix
+from o3drbf.solvers.base import dense_blas_threads
 
 __all__ = ["solve_dense", "DenseFactor", "DENSE_MAX"]
 
@@ -57,7 +58,8 @@ class DenseFactor:
         n = len(centres)
         a = kernel_matrix(kernel, centres, lower=True)  # the factorization reads the lower triangle only
         a[np.diag_indices(n)] += lam
-        self.factor = sla.cho_factor(a, lower=True, overwrite_a=True, check_finite=False)
+        with dense_blas_threads():
+            self.factor = sla.cho_factor(a, lower=True, overwrite_a=True, check_finite=False)
         self.lam0 = np.array(lam, dtype=float)
         self.q = q
         # Back-substitutions that do not depend on the smoothing, kept across refits:
@@ -176,7 +178,8 @@ def solve_dense(kernel, centres, y, lam, q):
     big[:n, n:] = q
     big[n:, :n] = q.T
     rhs = np.concatenate([y, np.zeros(m)])
-    sol = sla.solve(big, rhs, assume_a="sym", overwrite_a=True, overwrite_b=True, check_finite=False)
+    with dense_blas_threads():
+        sol = sla.solve(big, rhs, assume_a="sym", overwrite_a=True, overwrite_b=True, check_finite=False)
     return sol[:n], sol[n:], {"factorization": "symmetric-indefinite"}
 
 
