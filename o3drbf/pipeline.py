@@ -883,7 +883,71 @@ def surface_of(sol: Solution, centres, kernel: Kernel, normalization: Normalizat
     return surf
 
 
-def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = FitOptions(), *, progress: bool = False):
+def check_fit_memory(cset: ConstraintSet, params: Parameters, options: FitOptions = FitOptions(),
+                     extract: ExtractOptions | None = None) -> dict | None:
+    """Refuse, before the fit starts, a fast fit (and its meshing) that would not fit in memory.
+
+    The need is :func:`o3drbf.solvers.fast.memory_plan`'s for these
+    centres (products, preconditioner, Krylov basis, then the evaluator and
+    marching cubes at the extraction's resolution); the limit 80 % of the
+    memory available now.  Dense solves are checked by the solver itself
+    (also up front).
+
+    Parameters
+    ----------
+    cset : ConstraintSet
+    params : Parameters
+    options : FitOptions
+    extract : ExtractOptions, optional
+        The meshing to plan for (None: no mesh).
+
+    Returns
+    -------
+    dict or None
+        The plan (None when the solve is not fast).
+
+    Raises
+    ------
+    MemoryRefusal
+        With ``cli_hint`` naming a ``--surface-count`` that would fit (when
+        one would) and ``--tiles auto``.
+    """
+    from o3drbf.options import extraction_memory
+    from o3drbf.rbf.sums import polynomial_basis
+    from o3drbf.solvers import MemoryRefusal, choose_method, fast
+
+    pts = cset.constraints.points
+    n = len(pts)
+    m = polynomial_basis(pts[:1], params.kernel.polynomial_degree).shape[1]
+    method = options.solver if options.solver != "auto" else choose_method(n + m)[0]
+    if method != "fast" or not params.kernel.positive_definite:
+        return None
+    extraction, box = 0, None
+    if extract is not None:
+        res = extract.resolution if extract.resolution != "auto" else auto_resolution(cset.spacing)
+        extraction = extraction_memory(int(res)) if extract.voxel_size is None else 0
+        if cset.bounds is not None:
+            b = cset.normalization.forward(np.asarray(cset.bounds, dtype=float))
+            box = np.stack([b.min(axis=0), b.max(axis=0)])
+    try:
+        return fast.check_memory(n, eps=fast.product_tolerance(1e-6), kernel=params.kernel, centres=pts,
+                                 evaluation=extract is not None and n >= FAST_EVALUATION_MIN, box=box, extraction_bytes=extraction)
+    except MemoryRefusal as exc:
+        surface = cset.constraints.counts()["surface"]
+        hints = []
+        if exc.fraction:
+            count = int(exc.fraction * surface)
+            digits = max(len(str(count)) - 2, 0)
+            hints.append(f"--surface-count {count // 10**digits * 10**digits}")
+        hints.append("--tiles auto")
+        exc.cli_hint = "pass " + " or ".join(hints)
+        exc.what = f"a fast fit of {n:,} constraints ({surface:,} surface)" + (" and its mesh" if extract is not None else "")
+        exc.args = (exc.message(),)
+        raise
+
+
+def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = FitOptions(), *, progress: bool = False,
+                checked: bool = False):
     """Solve for the implicit function; robustly reweighted by default.
 
     Parameters
@@ -892,6 +956,8 @@ def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = F
     params : Parameters
     options : FitOptions
     progress : bool
+    checked : bool
+        :func:`check_fit_memory` has passed: the solver does not check again.
 
     Returns
     -------
@@ -906,7 +972,7 @@ def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = F
     constraints = Constraints(c.points, c.values, params.smoothing, c.kind)
     # One factorization for the first fit and every robust refit (Woodbury updates of the dense one).
     session = Refitter(params.kernel, constraints.points, constraints.values, constraints.smoothing, method=options.solver,
-                       progress=progress)
+                       checked=checked, progress=progress)
 
     def refit(smoothing=None):
         keep, solution = session.solve(smoothing)
@@ -1146,8 +1212,9 @@ def reconstruct(points, normals=None, *, cameras=None, point_camera=None, colors
         cset = build_constraints(data, opts.constraints, seed=seed)
     with stages.stage("parameters"):
         params = choose_parameters(data, cset, opts.parameters, seed=seed, confidence=outliers.confidence)
+    plan = check_fit_memory(cset, params, opts.fit, opts.extract if extract_mesh else None)  # seconds, before the fit
     with stages.stage("fit"):
-        surface, sol, robust = fit_surface(cset, params, opts.fit, progress=progress)
+        surface, sol, robust = fit_surface(cset, params, opts.fit, progress=progress, checked=plan is not None)
     surface.metadata["seed"] = seed
     mesh, specks = None, 0
     if extract_mesh:

@@ -516,10 +516,10 @@ def _main(argv: list[str] | None) -> int:
         with logging_redirect_tqdm(), _only_o3drbf_logs(verbose), _open3d_quiet(verbose), _warnings_as_log_lines(), _verbose(verbose):
             return _dispatch(parser, args)
     except MemoryError as exc:
-        print(f"o3drbf: error: {_memory_message(exc)}", file=sys.stderr)
+        print(f"o3drbf: error: {_memory_message(exc, getattr(args, 'solver', None))}", file=sys.stderr)
         return 2
     except (ValueError, FileNotFoundError, RuntimeError, OSError, ImportError) as exc:
-        print(f"o3drbf: error: {_one_line(exc)}", file=sys.stderr)
+        print(f"o3drbf: error: {getattr(exc, 'cli_message', None) or _one_line(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         raise
@@ -677,9 +677,13 @@ def _check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> No
             parser.error(f"argument {option}: expected a number below 2**63, got {value}")
 
 
-def _memory_message(exc: MemoryError) -> str:
-    """One line: how much memory was asked for, how much is free, and what to change."""
-    text = _one_line(exc) if str(exc) else "out of memory"
+def _memory_message(exc: MemoryError, solver: str | None = None) -> str:
+    """One line: how much memory was asked for, how much is free, and what to change.
+
+    A refusal made up front (:class:`o3drbf.solvers.MemoryRefusal`) says what
+    it knows: the need, the limit, and its own command-line fix; any other
+    MemoryError gets the general advice (``--solver fast`` only when the
+    solver was ``dense``)."""
     free = ""
     try:
         from o3drbf.solvers.base import available_memory
@@ -687,9 +691,15 @@ def _memory_message(exc: MemoryError) -> str:
         free = f" ({available_memory() / 2**30:.2f} GiB available)"
     except Exception:  # noqa: BLE001 - the message must not fail
         pass
+    from o3drbf.solvers.base import MemoryRefusal
+
+    if isinstance(exc, MemoryRefusal) and exc.cli_hint:
+        return f"out of memory: {exc.message(exc.cli_hint)}{free} (refused before the fit; nothing was written)"
+    text = _one_line(exc) if str(exc) else "out of memory"
+    solver_hint = ", --solver fast" if solver == "dense" else ""
     return (
-        f"out of memory: {text}{free}; use fewer constraints (--surface-count), a coarser --resolution, "
-        "or --solver fast, or free memory (nothing was written)"
+        f"out of memory: {text}{free}; use fewer constraints (--surface-count), a coarser --resolution{solver_hint}, "
+        "--tiles auto, or free memory (nothing was written)"
     )
 
 

@@ -27,13 +27,14 @@ import numpy as np
 
 from o3drbf.rbf.kernels import Kernel
 from o3drbf.rbf.sums import polynomial_basis
-from o3drbf.solvers.base import (RESIDUAL_ROWS, ConvergenceWarning, Solution, available_memory, dense_memory, gigabytes, memory_limit_or_default,
+from o3drbf.solvers.base import (RESIDUAL_ROWS, ConvergenceWarning, MemoryRefusal, Solution, available_memory, dense_memory, gigabytes,
+                                 memory_limit_or_default,
                                  relative_residual)
 from o3drbf.solvers.dense import DENSE_MAX, DenseFactor, solve_dense
 from o3drbf.solvers.iterative import solve_gmres
 from o3drbf.validation import as_points, check_choice, check_number, per_point
 
-__all__ = ["Solution", "solve", "available_memory", "dense_memory", "ConvergenceWarning", "METHODS",
+__all__ = ["Solution", "solve", "available_memory", "MemoryRefusal", "dense_memory", "ConvergenceWarning", "METHODS",
            "DENSE_MAX", "DENSE_AUTO_MAX", "FAST_EVALUATION_MIN", "choose_method", "Refitter", "solve_fast"]
 
 #: Solver methods. "fast" (grid products + preconditioned Krylov) is in o3drbf.solvers.fast.
@@ -214,15 +215,17 @@ def resolve_method(method: str, n: int, m: int, limit: int) -> str:
         method, why = choose_method(n + m, limit)
         log.info("solver: %s (%s)", method, why)
     if method == "dense" and n + m > DENSE_MAX:
-        raise ValueError(
+        exc = ValueError(
             f"a dense solve of {n} constraints is refused: above {DENSE_MAX} the installed OpenBLAS is known to "
             "crash and the fast solver is faster; use method='fast' (or 'auto')"
         )
+        exc.cli_message = (f"a dense solve of {n:,} constraints is refused: above {DENSE_MAX:,} the installed OpenBLAS is "
+                           "known to crash and the fast solver is faster; pass --solver auto (or --solver fast)")
+        raise exc
     if method == "dense" and dense_memory(n + m) > limit:
-        raise MemoryError(
-            f"a dense solve of {n} constraints needs about {gigabytes(dense_memory(n + m))} but the limit is "
-            f"{gigabytes(limit)}; use method='fast' (O(N log N)), or fewer constraints (surface_count)"
-        )
+        raise MemoryRefusal(f"a dense solve of {n} constraints", dense_memory(n + m), limit,
+                            api_hint="use method='fast' (O(N log N)), or fewer constraints (surface_count)",
+                            cli_hint="pass --solver fast (or --solver auto), or fewer constraints (--surface-count)")
     return method
 
 
@@ -253,12 +256,15 @@ class Refitter:
         Resolved once, for N constraints (:func:`choose_method`).
     max_changed : int, optional
         Most changed constraints solved by an update; default N / 8.
+    checked : bool
+        The caller has already checked that a fast solve fits in memory
+        (:func:`o3drbf.solvers.fast.check_memory`); not checked again.
     **options
         Passed to :func:`solve` (``progress``, ``rtol``, ``memory_limit``, ...).
     """
 
     def __init__(self, kernel: Kernel, centres, values, smoothing=0.0, method: str = "auto", max_changed: int | None = None,
-                 **options):
+                 checked: bool = False, **options):
         self.kernel = kernel
         self.centres, self.values, self.smoothing = system_inputs(centres, values, smoothing, method)
         n = len(self.centres)
@@ -269,6 +275,7 @@ class Refitter:
         self.factor = None
         self.operator = None  # the fast method's products, built at its first solve
         self.previous = None  # the fast method's last [w; p]
+        self.checked = bool(checked)
         limit = memory_limit_or_default(options.get("memory_limit"))
         self.method = method
         if n >= q.shape[1] + 1 and kernel.positive_definite:
@@ -324,9 +331,11 @@ class Refitter:
 
         o = self.options
         if self.operator is None:
-            fast.check_memory(len(self.centres), memory_limit=o.get("memory_limit"))  # before the products are built
+            rtol = o.get("rtol") or 1e-6  # before the products are built: what they, the preconditioner and FGMRES take
+            self.checked or fast.check_memory(len(self.centres), eps=fast.product_tolerance(rtol), memory_limit=o.get("memory_limit"),
+                              kernel=self.kernel, centres=self.centres, evaluation=False)
             self.operator = fast.fast_operator(self.kernel, self.centres, eps=fast.product_tolerance(o.get("rtol") or 1e-6),
-                                               backend=o.get("backend", "auto"))
+                                               backend=o.get("backend", "auto"), memory_limit=o.get("memory_limit"))
         finite = lam[keep]
         big = DROPPED_SMOOTHING * max(float(finite.max()) if finite.size else 1.0, 1e-12)
         sol = solve_fast(self.kernel, self.centres, self.values, np.where(keep, lam, big), o.get("rtol"), o.get("max_iterations", 1000),

@@ -12,13 +12,54 @@ import numpy as np
 
 from o3drbf.rbf.sums import kernel_sum
 
-__all__ = ["Solution", "ConvergenceWarning", "available_memory", "memory_limit_or_default", "dense_memory", "relative_residual",
-           "RESIDUAL_ROWS", "gigabytes",
-           "busy_machine", "dense_blas_threads"]
+__all__ = ["Solution", "ConvergenceWarning", "MemoryRefusal", "available_memory", "memory_limit_or_default", "dense_memory",
+           "relative_residual", "RESIDUAL_ROWS", "gigabytes", "busy_machine", "dense_blas_threads"]
 
 
 class ConvergenceWarning(UserWarning):
     """An iterative solve stopped before reaching its tolerance."""
+
+
+class MemoryRefusal(MemoryError):
+    """A request refused up front because it would not fit in memory (nothing costly was started).
+
+    Parameters
+    ----------
+    what : str
+        What was asked for ("a fast solve of 1,100,000 constraints").
+    need, limit : int
+        Bytes it needs and bytes it may use.
+    fraction : float, optional
+        About the largest share of the constraints that would fit (0: none
+        worth trying; None: not known).
+    api_hint, cli_hint : str, optional
+        What to change, in the library's terms (``surface_count``) and the
+        command line's (``--surface-count N``); callers that know more
+        (the pipeline knows the surface-constraint count) set ``cli_hint``.
+
+    Attributes
+    ----------
+    what, need, limit, fraction, cli_hint
+    """
+
+    def __init__(self, what: str, need: int, limit: int, fraction: float | None = None, api_hint: str | None = None,
+                 cli_hint: str | None = None):
+        self.what, self.need, self.limit, self.fraction = what, int(need), int(limit), fraction
+        self.cli_hint = cli_hint
+        if api_hint is None:
+            api_hint = "subsample the constraints (surface_count)"
+            if fraction:
+                api_hint = f"subsample the constraints to about {fraction:.0%} of these (surface_count)"
+            api_hint += ", use tiles, or free memory"
+        self.api_hint = api_hint
+        super().__init__(self.message())
+
+    def message(self, hint: str | None = None) -> str:
+        """One line: what, the need, the limit, and ``hint`` (default the library's)."""
+        return f"{self.what} needs about {gigabytes(self.need)} but the limit is {gigabytes(self.limit)}; {hint or self.api_hint}"
+
+    def __reduce__(self):
+        return (type(self), (self.what, self.need, self.limit, self.fraction, self.api_hint, self.cli_hint))
 
 
 @dataclass
@@ -87,9 +128,14 @@ def available_memory() -> int:
     return avail
 
 
+#: Share of :func:`available_memory` a solve (and each grid) may plan to use; the rest is the margin
+#: for what is not counted (the caller's arrays, allocator slack, other processes).
+USABLE_FRACTION = 0.8
+
+
 def memory_limit_or_default(memory_limit: int | None = None) -> int:
-    """Bytes a solve may use: ``memory_limit``, or 80 % of :func:`available_memory`."""
-    return int(0.8 * available_memory()) if memory_limit is None else int(memory_limit)
+    """Bytes a solve may use: ``memory_limit``, or :data:`USABLE_FRACTION` of :func:`available_memory` now."""
+    return int(USABLE_FRACTION * available_memory()) if memory_limit is None else int(memory_limit)
 
 
 def dense_memory(n: int) -> int:

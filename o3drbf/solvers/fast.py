@@ -121,16 +121,19 @@ from scipy.spatial import cKDTree
 
 from o3drbf.progress import progress_bar
 from o3drbf.rbf.kernels import Gaussian, Kernel, MultiOrder
-from o3drbf.solvers.base import ConvergenceWarning, Solution, memory_limit_or_default
+from o3drbf.solvers.base import ConvergenceWarning, MemoryRefusal, Solution, memory_limit_or_default
 from o3drbf.rbf.sums import kernel_matrix, kernel_sum, polynomial_basis
 
 __all__ = ["FastSum", "TwoLevel", "solve", "make_evaluator", "fast_memory", "default_workers", "DEFAULT_EPS",
-           "GridSum", "fast_operator", "grid_bytes", "outside_centres", "GRID_BUDGET", "product_tolerance", "check_memory"]
+           "GridSum", "fast_operator", "grid_bytes", "outside_centres", "GRID_BUDGET", "product_tolerance", "check_memory",
+           "grid_budget", "memory_plan", "grid_plan", "split_design", "fitting_fraction", "product_neighbours"]
 
 #: Default relative tolerance of fast sums (evaluation).
 DEFAULT_EPS = 1e-6
 #: Neighbour-list entries above which a short-range term goes to the FMM instead.
 SPARSE_BUDGET = 100_000_000
+#: Bytes per stored sparse entry (float64 value, int32 column index).
+_NNZ_BYTES = 12
 #: Loosest product tolerance the relaxation may reach.
 RELAX_CAP = 1e-3
 #: Pairs handled per chunk when building neighbour lists / summing sparse terms.
@@ -732,8 +735,82 @@ def _fft_workers() -> int:
         return 1
 
 
-#: Bytes allowed for one grid backend's FFT arrays (kernel transform + work arrays).
+#: Bytes of FFT arrays a grid may take when memory is not the question (reference size of the
+#: tests and benchmarks); a grid's actual budget is :func:`grid_budget`, from the memory available.
 GRID_BUDGET = 2 * 2**30
+
+
+def grid_budget(budget: int | None = None) -> int:
+    """Bytes a new grid's FFT arrays may take: ``budget``, or :func:`memory_limit_or_default`
+    (80 % of the memory available now), so that a grid follows the memory the machine has."""
+    return memory_limit_or_default() if budget is None else int(budget)
+
+
+def split_design(rc: float, eps: float) -> tuple[float, float, float, int]:
+    """``(sigma, s, h, half)`` of a grid split whose near part ends at ``rc`` for the design tolerance ``eps``.
+
+    sigma is the Ewald split width (``erfc(rc / (sqrt(2) sigma)) = eps``), ``s = sigma / sqrt(3)``
+    the spreading Gaussian's standard deviation, ``h`` the grid spacing (aliasing
+    ~``exp(-2 pi^2 s^2 / h^2)`` below eps) and ``half`` the stencil's half-width in cells.
+    """
+    from scipy.special import erfcinv
+
+    sigma = rc / (math.sqrt(2.0) * float(erfcinv(eps)))
+    s = sigma / math.sqrt(3.0)
+    ratio = max(0.7, math.sqrt(math.log(10.0 / eps) / (2 * math.pi**2)))
+    h = s / ratio
+    half = int(math.ceil(math.sqrt(2 * math.log(10.0 / eps)) * ratio))
+    return sigma, s, h, half
+
+
+def near_table(kernel, rc: float, sigma: float, eps: float):
+    """The near part phi_S = phi - phi_L tabulated: ``(cut radius, table, dr, d table / r)``; the cut is
+    where ``|phi_S| < eps phi(0)``."""
+    nt = 1 << 15
+    rr = np.linspace(0.0, 1.3 * rc + 8 * sigma, nt)
+    phis = kernel(rr) - long_part(kernel, rr, sigma)
+    big = np.nonzero(np.abs(phis) > eps * float(kernel.value_at_zero))[0]
+    cut = float(rr[min(big[-1] + 1, nt - 1)]) if len(big) else float(rr[1])
+    dr = float(rr[1] - rr[0])
+    dphis = np.gradient(phis, dr)
+    dtab = np.empty(nt)
+    dtab[1:] = dphis[1:] / rr[1:]
+    dtab[0] = dtab[1]
+    return cut, phis, dr, dtab
+
+
+def default_neighbours(n: int) -> int:
+    """Near-field size of a grid on ``n`` centres when none is given: N / 100 within [100, 1000]."""
+    return min(max(n // 100, 100), 1000)
+
+
+#: Most near-field neighbours of the products at the centres (:func:`product_neighbours`).
+PRODUCT_NEIGHBOURS_MAX = 2000
+
+
+def product_neighbours(n: int, limit: int | None = None) -> int:
+    """Near-field size of the grid products of a fit on ``n`` centres.
+
+    More neighbours make the grid coarser (FFT nodes fall as k^-1.5 on a
+    surface) and the sparse near part larger (~0.6 k entries a row); the
+    FFTs cost far more per node than a sparse entry, so the products use up
+    to ``PRODUCT_NEIGHBOURS_MAX`` neighbours, as many as keep the near parts
+    (the product's and its two companions', ~1.7 k entries a row) within 30 %
+    of ``limit`` bytes (default :func:`memory_limit_or_default`), and never
+    fewer than :func:`default_neighbours`."""
+    limit = memory_limit_or_default(limit)
+    fit = int(0.3 * limit / (max(n, 1) * _NNZ_BYTES * 1.1))
+    return int(min(max(fit, default_neighbours(n)), PRODUCT_NEIGHBOURS_MAX, max(n // 16, default_neighbours(n))))
+
+
+def neighbour_radius(centres, tree: cKDTree, k: int) -> float:
+    """Median distance from a seeded sample of 2,000 centres to their ``k``-th nearest centre (self included)."""
+    n = len(centres)
+    rng = np.random.default_rng(0)
+    sample = centres[rng.choice(n, min(n, 2000), replace=False)]
+    k = int(min(max(k, 8), max(n // 4, 2)))
+    d, _ = tree.query(sample, k=k)
+    return max(float(np.median(d[:, -1])), 1e-6 * max(float(np.ptp(centres, axis=0).max()), 1e-300))
 #: Kernel evaluations per product allowed for the far centres a grid leaves out (summed directly).
 DIRECT_PAIRS = 50_000_000
 
@@ -753,28 +830,44 @@ class _Mesh:
         self.origin = np.asarray(lo, float) - pad
         self.shape = tuple(int(math.ceil((hi[i] - lo[i] + 2 * pad) / h)) + 1 for i in range(3))
         self.fshape = tuple(_sfft.next_fast_len(2 * m - 1, real=True) for m in self.shape)
-        idx = [np.minimum(np.arange(p), p - np.arange(p)).astype(np.int64) for p in self.fshape]
+        idx = [np.minimum(np.arange(p), p - np.arange(p)).astype(np.int32) for p in self.fshape]
         n2 = (idx[0][:, None, None] ** 2 + idx[1][None, :, None] ** 2) + idx[2][None, None, :] ** 2
         kgrid = ktable(n2)  # K at h * sqrt(n2)
         del n2
-        self.khat = _sfft.rfftn((kgrid * h**3).astype(dtype), workers=_fft_workers())
+        kgrid *= h**3
+        # K is even along every axis (K[i] = K[p - i]), so its transform is real: keep the real part only
+        # (half the memory of the complex spectrum).
+        spectrum = _sfft.rfftn(kgrid.astype(dtype, copy=False), workers=_fft_workers(), overwrite_x=True)
         del kgrid
+        self.khat = np.ascontiguousarray(spectrum.real)
+        del spectrum
 
     @staticmethod
-    def nbytes(lo, hi, h, half) -> int:
+    def nbytes(lo, hi, h, half, single: bool = False, part: str = "all") -> int:
+        """Bytes of a grid's kernel transform plus the work arrays of one potential (``single``: float32 FFTs).
+
+        ``part``: "all", "kept" (the real kernel transform, kept while the grid lives: 4 bytes a
+        padded node, 2 in single precision) or "work" (the padded grid, its transform and the
+        inverse of one potential, freed after it)."""
         pad = (half + 2) * h
         shape = [math.ceil((hi[i] - lo[i] + 2 * pad) / h) + 1 for i in range(3)]
-        return int(8 * 4.5 * np.prod([2.0 * m for m in shape]))
+        kept, work = (2, 10) if single else (4, 20)
+        per = {"all": kept + work, "kept": kept, "work": work}[part]
+        return int(per * np.prod([2.0 * m for m in shape]))
 
     def potential(self, pts, w):
-        grid = np.zeros(self.shape)
+        # Spread straight into the zero-padded array the FFT takes (no padded copy), transform in place.
+        grid = np.zeros(self.fshape, dtype=self.dtype)
         _spread(pts, w, self.origin, self.h, self.s, self.half, grid)
-        g = _sfft.rfftn(grid.astype(self.dtype, copy=False), s=self.fshape, workers=_fft_workers())
+        g = _sfft.rfftn(grid, workers=_fft_workers(), overwrite_x=True)
         del grid
         g *= self.khat
-        u = _sfft.irfftn(g, s=self.fshape, workers=_fft_workers())
+        u = _sfft.irfftn(g, s=self.fshape, workers=_fft_workers(), overwrite_x=True)
         del g
-        return np.ascontiguousarray(u[: self.shape[0], : self.shape[1], : self.shape[2]], dtype=float) * self.h**3
+        out = np.ascontiguousarray(u[: self.shape[0], : self.shape[1], : self.shape[2]], dtype=float)
+        del u
+        out *= self.h**3
+        return out
 
     def gather(self, u, pts, gradient):
         out = np.empty(len(pts))
@@ -825,8 +918,10 @@ class GridSum:
         near part of an evaluation 24 of 51 s: a tenth of all centres).
         Measured at N = 100,000, eps 1e-5 (loaded machine): 400 -> 8.4 s a
         product (grid 360x360x135), 1,000 -> 2.8 s (240x240x96), 2,000 -> 2.7 s.
-    budget : int
-        Bytes allowed for the FFT arrays.
+    budget : int, optional
+        Bytes allowed for the FFT arrays; default :func:`grid_budget` (from the
+        memory available when the grid is built, and again when :meth:`cover`
+        enlarges it).
     tree : cKDTree, optional
         Of ``centres`` (reused when given).
     outside : (K,) int array, optional
@@ -834,19 +929,22 @@ class GridSum:
         as targets); default :func:`outside_centres` (isolated centres beyond
         the others' box, such as the exterior sphere), so that the grid's
         box, and its memory, is set by the data rather than by the sphere.
+    radius : float, optional
+        The near-field radius itself (instead of ``neighbours``): the looser
+        companions take one that keeps their grid no finer than this one's.
 
     Raises
     ------
     ValueError
         Not a multi-order kernel, confluent, or numba missing.
     MemoryError
-        The grid would exceed ``GRID_BUDGET``.
+        The grid would exceed the budget.
     """
 
     def __init__(self, kernel: Kernel, centres, eps: float = DEFAULT_EPS, neighbours: int | None = None,
-                 budget: int = GRID_BUDGET, tree: cKDTree | None = None, outside=None):
+                 budget: int | None = None, tree: cKDTree | None = None, outside=None, radius: float | None = None):
         if not HAVE_GRID:
-            raise ValueError("the grid backend needs numba; use backend='fmm'")
+            raise ValueError("the grid backend needs numba, which is not installed")
         if not isinstance(kernel, MultiOrder) or kernel.coefficients is None:
             raise ValueError(f"the grid backend supports the non-confluent multi-order kernel, not {kernel!r}")
         t0 = time.perf_counter()
@@ -858,45 +956,28 @@ class GridSum:
         self.tree = cKDTree(self.centres) if tree is None else tree
         self.phi0 = float(kernel.value_at_zero)
         self.mode = "grid"
-        from scipy.special import erfcinv
-
-        rng = np.random.default_rng(0)
-        sample = self.centres[rng.choice(n, min(n, 2000), replace=False)]
-        if neighbours is None:
-            neighbours = min(max(n // 100, 100), 1000)
-        k = int(min(max(neighbours, 8), max(n // 4, 2)))
-        d, _ = self.tree.query(sample, k=k)
-        rc = max(float(np.median(d[:, -1])), 1e-6 * max(float(np.ptp(self.centres, axis=0).max()), 1e-300))
-        sigma = rc / (math.sqrt(2.0) * float(erfcinv(eps)))
-        s = sigma / math.sqrt(3.0)
-        # aliasing of a Gaussian of std s sampled at h: ~exp(-2 pi^2 s^2 / h^2)
-        ratio = max(0.7, math.sqrt(math.log(10.0 / eps) / (2 * math.pi**2)))
-        h = s / ratio
-        half = int(math.ceil(math.sqrt(2 * math.log(10.0 / eps)) * ratio))
+        if radius is None:
+            rc = neighbour_radius(self.centres, self.tree, default_neighbours(n) if neighbours is None else neighbours)
+        else:
+            rc = float(radius)
+        self.design_radius = rc
+        sigma, s, h, half = split_design(rc, eps)
         self.s, self.h, self.half, self.sigma = s, h, half, sigma
-        full = _Mesh.nbytes(self.centres.min(axis=0), self.centres.max(axis=0), h, half)
+        single = self.eps >= 1e-4  # single-precision FFTs (half the time and memory): ~1e-6 round-off << eps
+        full = _Mesh.nbytes(self.centres.min(axis=0), self.centres.max(axis=0), h, half, single)
         if outside is None:
             outside = outside_centres(self.centres, self.tree, rc)
         self._set_core(outside)
         lo, hi = self._cc.min(axis=0), self._cc.max(axis=0)
-        need = _Mesh.nbytes(lo, hi, h, half)
-        self.budget = int(budget)
+        need = _Mesh.nbytes(lo, hi, h, half, single)
+        self._fixed_budget = None if budget is None else int(budget)
+        self.budget = grid_budget(budget)
         self._eval_mesh = None
-        if need > budget:
-            raise MemoryError(f"the grid backend needs ~{need / 2**30:.1f} GB of FFT arrays (budget "
-                              f"{budget / 2**30:.1f} GB); use backend='fmm' or more neighbours")
+        if need > self.budget:
+            raise MemoryError(f"the grid of fast sums over {n:,} centres needs ~{need / 2**30:.1f} GB of FFT arrays "
+                              f"(budget {self.budget / 2**30:.1f} GB)")
         # Near part: phi_S = phi - phi_L on a table, cut where |phi_S| < eps phi(0).
-        nt = 1 << 15
-        rr = np.linspace(0.0, 1.3 * rc + 8 * sigma, nt)
-        phis = kernel(rr) - long_part(kernel, rr, sigma)
-        big = np.nonzero(np.abs(phis) > eps * self.phi0)[0]
-        self.rc = float(rr[min(big[-1] + 1, nt - 1)]) if len(big) else float(rr[1])
-        self.tab = phis
-        self.dr = float(rr[1] - rr[0])
-        dphis = np.gradient(phis, self.dr)
-        self.dtab = np.empty(nt)
-        self.dtab[1:] = dphis[1:] / rr[1:]
-        self.dtab[0] = self.dtab[1]
+        self.rc, self.tab, self.dr, self.dtab = near_table(kernel, rc, sigma, eps)
         self._meshes = []
         self.mesh = self._mesh(lo, hi)
         self._cell_setup()
@@ -923,6 +1004,9 @@ class GridSum:
         m = _Mesh(lo, hi, self.h, self.s, self.half, self._ktable, np.float32 if self.eps >= 1e-4 else np.float64)
         self._meshes = [m] + self._meshes[:1]
         return m
+
+    def _mesh_bytes(self, lo, hi) -> int:
+        return _Mesh.nbytes(lo, hi, self.h, self.half, self.eps >= 1e-4)
 
     def _set_core(self, outside):
         """Split the centres into the grid's (core) and the few far ones summed directly."""
@@ -969,18 +1053,24 @@ class GridSum:
 
     def _tier(self, eps):
         """The loosest operator at least as accurate as ``eps``: this one, or a cached
-        looser companion (tolerance 1e-4 or 1e-3, 300 neighbours: a coarser grid,
-        a 9-11 point stencil instead of 13-15, a smaller near part)."""
+        looser companion (tolerance 1e-4 or 1e-3, :meth:`tier_radius`: a grid no finer,
+        single-precision FFTs, a 9-11 point stencil instead of 13-15, a smaller near part)."""
         if eps is None:
             return self
         for tol in (1e-3, 1e-4):
             if tol <= eps and tol >= 10 * self.eps:
                 tiers = self.__dict__.setdefault("_tiers", {})
                 if tol not in tiers:
-                    tiers[tol] = GridSum(self.kernel, self.centres, eps=tol, neighbours=min(300, max(self.n // 300, 64)),
-                                         tree=self.tree, outside=self._out)
+                    tiers[tol] = GridSum(self.kernel, self.centres, eps=tol, radius=self.tier_radius(tol),
+                                         tree=self.tree, outside=self._out, budget=self._fixed_budget)
                 return tiers[tol]
         return self
+
+    def tier_radius(self, tol: float) -> float:
+        """Near-field radius of the companion at tolerance ``tol``: that of ~300 neighbours, or more where
+        that would make its grid finer than this one's (a looser companion never takes more FFT memory)."""
+        rc = neighbour_radius(self.centres, self.tree, min(300, max(self.n // 300, 64)))
+        return max(rc, self.h / split_design(1.0, _clip_eps(tol) / 10)[2])
 
     def matvec(self, w, eps: float | None = None) -> np.ndarray:
         """(Phi w)_i, self term included, to relative accuracy ``eps`` (default: the operator's)."""
@@ -1056,10 +1146,20 @@ class GridSum:
         if self.mesh.covers(np.array([lo, hi])):
             self._eval_mesh = None
             return True
-        if _Mesh.nbytes(lo, hi, self.h, self.half) > self.budget:
+        need = self._mesh_bytes(lo, hi)
+        limit = grid_budget(self._fixed_budget)
+        if self._fixed_budget is None:  # what is available now, plus the grid the new one replaces
+            limit += self._mesh_bytes(*self._box())
+        if need > limit:
             return False
-        self._eval_mesh = self._mesh(lo, hi)
+        # The larger grid replaces the centres' one (it serves the products too): one grid in memory, not two.
+        self._meshes = []
+        self._ucache = None
+        self.mesh = self._eval_mesh = self._mesh(lo, hi)
         return True
+
+    def _box(self):
+        return self._cc.min(axis=0), self._cc.max(axis=0)
 
     def _evaluate_on(self, mesh, w, t, gradient):
         """The grid + near sum from the core centres at targets inside ``mesh``, plus the far centres directly."""
@@ -1143,7 +1243,8 @@ def outside_centres(centres, tree: cKDTree, radius: float, max_pairs: int | None
     otherwise set the grid's box (at 100,000 constraints, 8.1 GB of FFT
     arrays instead of 0.35 GB).  The grid then covers the box of the
     non-isolated centres; the centres outside that box are returned, or none
-    if they are more than ``max_pairs / N`` (default ``DIRECT_PAIRS``).
+    if they are both more than ``max_pairs / N`` (default ``DIRECT_PAIRS``)
+    and more than 0.1 % of the centres.
 
     Parameters
     ----------
@@ -1168,26 +1269,27 @@ def outside_centres(centres, tree: cKDTree, radius: float, max_pairs: int | None
         return np.zeros(0, np.int64)
     lo, hi = centres[busy].min(axis=0), centres[busy].max(axis=0)
     out = np.nonzero(((centres < lo) | (centres > hi)).any(axis=1))[0]
-    if len(out) * n > cap:
+    if len(out) * n > cap and len(out) > 1e-3 * n:  # a few (the sphere) are summed directly even at large N
         return np.zeros(0, np.int64)
     return out.astype(np.int64)
 
 
-def fast_operator(kernel: Kernel, centres, eps: float = DEFAULT_EPS, backend: str = "auto"):
+def fast_operator(kernel: Kernel, centres, eps: float = DEFAULT_EPS, backend: str = "auto", memory_limit: int | None = None):
     """The product for a fast solve: :class:`GridSum` or :class:`FastSum`.
 
     ``backend="auto"`` takes the grid for the multi-order kernel when numba is
     there, ``eps >= 1e-8`` and the grid fits ``GRID_BUDGET`` (it is 5-10x
     faster than fmm3dpy's single-threaded wheel: 100,000 centres, 2.8 s vs
-    ~30 s a product), else the FMM (``"fmm"``)."""
+    ~30 s a product), else the FMM (``"fmm"``).  The grid's near field has
+    :func:`product_neighbours` (``memory_limit``) neighbours."""
     if backend not in ("auto", "grid", "fmm"):
         raise ValueError(f"backend must be 'auto', 'grid' or 'fmm', got {backend!r}")
     if backend == "grid":
-        return GridSum(kernel, centres, eps=eps)
+        return GridSum(kernel, centres, eps=eps, neighbours=product_neighbours(len(centres), memory_limit))
     if backend == "auto" and HAVE_GRID and isinstance(kernel, MultiOrder) and kernel.coefficients is not None \
             and eps >= 1e-8 and len(centres) >= 64:
         try:
-            return GridSum(kernel, centres, eps=eps)
+            return GridSum(kernel, centres, eps=eps, neighbours=product_neighbours(len(centres), memory_limit))
         except MemoryError as exc:
             import logging
 
@@ -1494,29 +1596,250 @@ def _fgmres(matvec, b, prec, rtol, max_iterations, restart, true_matvec, bar=Non
 # --------------------------------------------------------------------------------------
 # memory
 # --------------------------------------------------------------------------------------
-def fast_memory(n: int, restart: int = 50, eps: float = 1e-6) -> int:
-    """Rough peak bytes of a fast solve with ``n`` constraints.
+#: Bytes per centre of the kd-tree, the sorted copies and the index arrays every product keeps.
+_PER_CENTRE_BYTES = 200
 
-    The larger of the FMM route and the grid route (near parts of ~1,000 +
-    2 x 300 entries a row, 12 bytes each, and up to three FFT grids);
-    measured peak at N = 100,000 (grid): 2.3 GB for the fit."""
+
+def fast_memory(n: int, restart: int = 50, eps: float = 1e-6) -> int:
+    """Rough peak bytes of a fast solve with ``n`` constraints, from ``n`` alone.
+
+    The FMM route (fmm3dpy's working memory) or the grid route's near parts
+    (about 1,000 + 2 x 400 entries a row) with a grid of 10 kB a centre; the
+    estimate that knows the centres is :func:`memory_plan`."""
     fmm = _FMM_BYTES_PER_POINT * n * (1.0 if eps <= 1e-6 else 0.6) + 12 * n * 300
-    grid = 12 * n * 1600 + min(GRID_BUDGET, 1e4 * n)
+    grid = _NNZ_BYTES * n * 1800 + 1e4 * n
     krylov = 2 * (restart + 2) * n * 8
     precond = 12 * n * 64 + 8 * 6000**2 + 256 * 2**20 + (12 * (n // 8) * 1000 if n > 144_000 else 0)
     return int(max(fmm, grid) + krylov + precond)
 
 
-def check_memory(n: int, restart: int = 50, eps: float = 1e-6, memory_limit: int | None = None) -> None:
-    """Raise MemoryError, naming the need and the limit, when a fast solve of ``n`` constraints would not fit
-    in ``memory_limit`` bytes (default 80 % of the available memory)."""
+def _core_box(centres, tree, rc, outside=None):
+    """(outside indices, core lo, core hi, core count) of a grid with near radius ``rc``."""
+    if outside is None:
+        outside = outside_centres(centres, tree, rc)
+    if len(outside):
+        mask = np.ones(len(centres), bool)
+        mask[outside] = False
+        core = centres[mask]
+    else:
+        core = centres
+    return outside, core.min(axis=0), core.max(axis=0), len(core)
+
+
+def grid_plan(kernel, centres, tree, eps: float, neighbours: int | None = None, radius: float | None = None,
+              outside=None, box=None, near: bool = True, memo: dict | None = None) -> dict:
+    """What a :class:`GridSum` with these arguments would take, without building it.
+
+    Parameters
+    ----------
+    kernel : MultiOrder
+    centres : (N, 3) array
+    tree : cKDTree
+        Of ``centres``.
+    eps, neighbours, radius, outside
+        As for :class:`GridSum`.
+    box : (2, 3) array_like, optional
+        A box the grid must cover too (:meth:`GridSum.cover`).
+    near : bool
+        Count the stored near-field matrix (products at the centres build it;
+        evaluation at targets does not).
+    memo : dict, optional
+        Neighbour radii already measured on this tree, by neighbour count (filled in).
+
+    Returns
+    -------
+    dict
+        ``grid`` (the kernel transform, kept), ``work`` (the transforms of
+        one product, freed after it), ``near`` (sparse matrix), ``potential``
+        (one grid potential), bytes; ``h``, ``radius`` (design), ``outside``.
+    """
+    n = len(centres)
+    e = _clip_eps(eps)
+    if radius is None:
+        k = default_neighbours(n) if neighbours is None else neighbours
+        memo = {} if memo is None else memo
+        if k not in memo:
+            memo[k] = neighbour_radius(centres, tree, k)
+        radius = memo[k]
+    rc = float(radius)
+    sigma, _, h, half = split_design(rc, e / 10)
+    outside, lo, hi, n_core = _core_box(centres, tree, rc, outside)
+    if box is not None:
+        lo, hi = np.minimum(lo, box[0]), np.maximum(hi, box[1])
+    grid = _Mesh.nbytes(lo, hi, h, half, e >= 1e-4, "kept")
+    work = _Mesh.nbytes(lo, hi, h, half, e >= 1e-4, "work")
+    pad = (half + 2) * h
+    cells = float(np.prod([math.ceil((hi[i] - lo[i] + 2 * pad) / h) + 1 for i in range(3)]))
+    nnz = 0.0
+    if near:
+        cut = near_table(kernel, rc, sigma, e / 10)[0]
+        sample = centres[np.random.default_rng(1).choice(n, min(n, 1000), replace=False)]
+        nnz = float(np.mean(tree.query_ball_point(sample, cut, return_length=True))) * n_core
+    return {"grid": int(grid), "work": int(work), "near": int(_NNZ_BYTES * nnz + 8 * n_core), "potential": int(8 * cells),
+            "h": h, "radius": rc, "outside": outside}
+
+
+def _twolevel_plan(kernel, centres, tree, lam_count, coarse_update_nnz, options=None) -> int:
+    """Bytes of a :class:`TwoLevel` on these centres with its default options (``options`` overrides)."""
+    o = {"neighbours": 64, "coarse_ratio": 8, "max_coarse": 6000, "exact_below": 3000, "dense_budget": 256 * 2**20,
+         "nested": 8, "nested_ratio": 24, "nested_eps": 1e-3}
+    o.update(options or {})
+    n = len(centres)
+    total = 2 * _NNZ_BYTES * n * (o["neighbours"] + 1)  # the tapered near matrix (and its copy while built)
+    want = max(n // o["coarse_ratio"], 1)
+    nested = o["nested"] and n > o["exact_below"] and want > o["max_coarse"] and n > o["nested_ratio"] * o["max_coarse"]
+    mc = n if n <= o["exact_below"] else min(want, n if nested else o["max_coarse"], n)
+    if mc < n:
+        total += min(8 * n * mc, o["dense_budget"]) if 8 * n * mc <= o["dense_budget"] else int(coarse_update_nnz * mc / n) * _NNZ_BYTES
+    if not nested:
+        return int(total + 1.5 * 8 * mc * mc)
+    sub_idx = np.sort(np.random.default_rng(2).choice(n, mc, replace=False))
+    sub = centres[sub_idx]
+    sub_tree = cKDTree(sub)
+    g = grid_plan(kernel, sub, sub_tree, max(o["nested_eps"], 1e-8), neighbours=product_neighbours(mc))
+    inner = _twolevel_plan(kernel, sub, sub_tree, mc, g["near"] / _NNZ_BYTES, o)
+    krylov = 2 * (o["nested"] + 2) * mc * 8
+    return int(total + g["grid"] + g["near"] + inner + krylov + _PER_CENTRE_BYTES * mc)  # (its work: below the outer's)
+
+
+def memory_plan(kernel, centres, rtol: float = 1e-6, eps: float | None = None, restart: int = 50, tree: cKDTree | None = None,
+                preconditioner: dict | None = None, evaluation: bool = True, evaluation_eps: float = DEFAULT_EPS,
+                box=None, extraction_bytes: int = 0, limit: int | None = None) -> dict:
+    """Peak bytes of a fast fit on these centres (and of evaluating and meshing it), without building anything.
+
+    It follows the solve as it runs: during FGMRES the products at the
+    solve's tolerance and their two looser companions (each a grid and a
+    near-field matrix), the two-level preconditioner (tapered near field,
+    coarse Cholesky or the nested level with its own grid), the Krylov
+    basis; at the end the evaluator's grid joins the products; meshing
+    holds the evaluator's grid enlarged to ``box`` and ``extraction_bytes``.
+    Kernels or tolerances the grid does not take are estimated by
+    :func:`fast_memory`.
+
+    Parameters
+    ----------
+    kernel : Kernel
+    centres : (N, 3) array
+    rtol : float
+        Relative residual of the solve; the products' tolerance is
+        :func:`product_tolerance` of it unless ``eps`` is given.
+    eps : float, optional
+    restart : int
+    tree : cKDTree, optional
+        Of ``centres``.
+    preconditioner : dict, optional
+        Options of :class:`TwoLevel`.
+    evaluation : bool
+        Count the evaluator (:func:`make_evaluator`) and meshing.
+    evaluation_eps : float
+    box : (2, 3) array_like, optional
+        The meshing lattice's box (default: the centres' box padded by 5 % of its span).
+    extraction_bytes : int
+        Marching cubes' own arrays (:func:`o3drbf.options.extraction_memory`).
+    limit : int, optional
+        The memory limit the products' near-field size follows
+        (:func:`product_neighbours`); default :func:`memory_limit_or_default`.
+
+    Returns
+    -------
+    dict
+        ``total`` (the peak, bytes), ``fit``, ``end_of_fit``, ``mesh``
+        (the three phases), ``parts`` (bytes by piece) and ``route``
+        ("grid" or "fmm").
+    """
+    centres = np.ascontiguousarray(centres, dtype=float)
+    n = len(centres)
+    e = product_tolerance(rtol) if eps is None else _clip_eps(eps)
+    grid_ok = HAVE_GRID and isinstance(kernel, MultiOrder) and kernel.coefficients is not None and e >= 1e-8 and n >= 64
+    if not grid_ok:
+        need = fast_memory(n, restart, e)
+        return {"total": need, "fit": need, "end_of_fit": need, "mesh": need, "parts": {}, "route": "fmm"}
+    tree = cKDTree(centres) if tree is None else tree
+    base = _PER_CENTRE_BYTES * n
+    memo = {}
+    main = grid_plan(kernel, centres, tree, e, neighbours=product_neighbours(n, limit), memo=memo)
+    out = main["outside"]
+    parts = {"grid": main["grid"], "near": main["near"]}
+    work = [main["work"]]
+    rc300 = neighbour_radius(centres, tree, min(300, max(n // 300, 64)))
+    tier_nnz = 0
+    for tol in (1e-3, 1e-4):
+        if tol >= 10 * e:
+            t = grid_plan(kernel, centres, tree, tol, radius=max(rc300, main["h"] / split_design(1.0, tol / 10)[2]), outside=out)
+            parts[f"grid {tol:g}"], parts[f"near {tol:g}"] = t["grid"], t["near"]
+            work.append(t["work"])
+            tier_nnz = t["near"] / _NNZ_BYTES if tol == 1e-3 else tier_nnz
+    parts["preconditioner"] = _twolevel_plan(kernel, centres, tree, n, tier_nnz or main["near"] / _NNZ_BYTES, preconditioner)
+    parts["krylov"] = int(2 * (restart + 1) * (n + 4) * 8 + 3 * n * 4 * 8)
+    products = sum(v for k, v in parts.items() if k.startswith(("grid", "near")))
+    fit = base + products + parts["preconditioner"] + parts["krylov"] + max(work)
+    end = mesh = 0
+    if evaluation:
+        if box is None:
+            _, lo, hi, _ = _core_box(centres, tree, main["radius"], out)
+            pad = 0.05 * float((hi - lo).max())
+            box = np.stack([lo - pad, hi + pad])
+        at_centres = grid_plan(kernel, centres, tree, evaluation_eps, near=False, outside=out, memo=memo)
+        at_box = grid_plan(kernel, centres, tree, evaluation_eps, near=False, box=np.asarray(box, dtype=float), outside=out,
+                           memo=memo)
+        parts["evaluator"] = at_box["grid"] + at_box["potential"]
+        end = base + products + at_centres["grid"] + at_centres["potential"] + max(work + [at_centres["work"]])
+        mesh = base + parts["evaluator"] + at_box["work"] + int(extraction_bytes)
+    return {"total": int(max(fit, end, mesh)), "fit": int(fit), "end_of_fit": int(end), "mesh": int(mesh), "parts": parts,
+            "route": "grid"}
+
+
+def check_memory(n: int, restart: int = 50, eps: float = 1e-6, memory_limit: int | None = None, kernel=None, centres=None,
+                 **plan) -> dict | None:
+    """Refuse, before anything is built, a fast solve that would not fit in ``memory_limit`` bytes.
+
+    With ``kernel`` and ``centres`` the need is :func:`memory_plan`'s (``plan``
+    holds its other arguments), else :func:`fast_memory`'s.  The limit
+    defaults to 80 % of the memory available now.
+
+    Returns
+    -------
+    dict or None
+        The plan (None without centres).
+
+    Raises
+    ------
+    MemoryRefusal
+        Naming the need, the limit and the share of the constraints that would fit.
+    """
     limit = memory_limit_or_default(memory_limit)
-    need = fast_memory(n, restart, eps)
+    result = None
+    if centres is not None and kernel is not None:
+        result = memory_plan(kernel, centres, eps=eps, restart=restart, limit=limit, **plan)
+        need = result["total"]
+    else:
+        need = fast_memory(n, restart, eps)
     if need > limit:
-        raise MemoryError(
-            f"a fast solve of {n} constraints needs about {need / 2**30:.1f} GB but the limit is "
-            f"{limit / 2**30:.1f} GB; subsample the constraints (surface_count) or raise memory_limit"
-        )
+        fraction = None
+        if centres is not None and kernel is not None:
+            fraction = fitting_fraction(kernel, centres, limit, eps=eps, restart=restart, limit=limit, **plan)
+        raise MemoryRefusal(f"a fast solve of {n} constraints", need, limit, fraction=fraction,
+                            cli_hint="use fewer constraints (--surface-count) or --tiles auto")
+    return result
+
+
+def fitting_fraction(kernel, centres, fit_in: int, **plan) -> float:
+    """About the largest share of ``centres`` (a seeded random subset, like a sparser subsample) whose
+    :func:`memory_plan` (with ``plan``) fits in ``fit_in`` bytes (0 if not even 1 % does)."""
+    n = len(centres)
+    rng = np.random.default_rng(3)
+    order = rng.permutation(n)
+    frac = 1.0
+    need = memory_plan(kernel, centres, **plan)["total"]
+    for _ in range(8):
+        frac *= min(0.9, max(0.2, (fit_in / need) ** 1.25))
+        m = int(frac * n)
+        if m < max(100, n // 100):
+            return 0.0
+        need = memory_plan(kernel, centres[np.sort(order[:m])], **plan)["total"]
+        if need <= fit_in:
+            return frac
+    return 0.0
 
 
 # --------------------------------------------------------------------------------------
@@ -1595,11 +1918,12 @@ def solve(
     lam = np.broadcast_to(np.asarray(lam, dtype=float), (n,)).copy()
     rtol = float(rtol)
     eps = product_tolerance(rtol) if eps is None else _clip_eps(eps)
-    check_memory(n, restart, eps, memory_limit)
+    if operator is None:  # (a prebuilt operator was checked by whoever built it)
+        check_memory(n, restart, eps, memory_limit, kernel=kernel, centres=centres, preconditioner=preconditioner, evaluation=False)
     q = polynomial_basis(centres, kernel.polynomial_degree)
     m = q.shape[1]
     t_setup = time.perf_counter()
-    fast = fast_operator(kernel, centres, eps=eps, backend=backend) if operator is None else operator
+    fast = fast_operator(kernel, centres, eps=eps, backend=backend, memory_limit=memory_limit) if operator is None else operator
     prec_a = TwoLevel(fast, lam, **(preconditioner or {}))
     # Constraint preconditioner: exact elimination of p with M ~ (Phi + Lambda)^{-1}.
     mq = np.column_stack([prec_a(q[:, k]) for k in range(m)]) if m else np.zeros((n, 0))
