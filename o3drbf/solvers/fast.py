@@ -1274,22 +1274,26 @@ def outside_centres(centres, tree: cKDTree, radius: float, max_pairs: int | None
     return out.astype(np.int64)
 
 
-def fast_operator(kernel: Kernel, centres, eps: float = DEFAULT_EPS, backend: str = "auto", memory_limit: int | None = None):
+def fast_operator(kernel: Kernel, centres, eps: float = DEFAULT_EPS, backend: str = "auto", memory_limit: int | None = None,
+                  neighbours: int | None = None):
     """The product for a fast solve: :class:`GridSum` or :class:`FastSum`.
 
     ``backend="auto"`` takes the grid for the multi-order kernel when numba is
     there, ``eps >= 1e-8`` and the grid fits ``GRID_BUDGET`` (it is 5-10x
     faster than fmm3dpy's single-threaded wheel: 100,000 centres, 2.8 s vs
     ~30 s a product), else the FMM (``"fmm"``).  The grid's near field has
-    :func:`product_neighbours` (``memory_limit``) neighbours."""
+    ``neighbours``, default :func:`product_neighbours` (``memory_limit``): right for
+    products at the centres; evaluation at many targets wants fewer (:func:`default_neighbours`)."""
+    if neighbours is None:
+        neighbours = product_neighbours(len(centres), memory_limit)
     if backend not in ("auto", "grid", "fmm"):
         raise ValueError(f"backend must be 'auto', 'grid' or 'fmm', got {backend!r}")
     if backend == "grid":
-        return GridSum(kernel, centres, eps=eps, neighbours=product_neighbours(len(centres), memory_limit))
+        return GridSum(kernel, centres, eps=eps, neighbours=neighbours)
     if backend == "auto" and HAVE_GRID and isinstance(kernel, MultiOrder) and kernel.coefficients is not None \
             and eps >= 1e-8 and len(centres) >= 64:
         try:
-            return GridSum(kernel, centres, eps=eps, neighbours=product_neighbours(len(centres), memory_limit))
+            return GridSum(kernel, centres, eps=eps, neighbours=neighbours)
         except MemoryError as exc:
             import logging
 
@@ -1986,7 +1990,8 @@ def make_evaluator(kernel: Kernel, centres, weights, eps: float = DEFAULT_EPS, c
     grid for the multi-order kernel by default).  Targets are processed
     ``chunk`` at a time.  ``evaluator.cover(lo, hi)`` prepares the grid for
     targets in that box (:meth:`GridSum.cover`; a no-op for other backends)."""
-    fast = fast_operator(kernel, centres, eps=eps, backend=backend)
+    # Few neighbours: the near part of an evaluation is summed afresh at every target.
+    fast = fast_operator(kernel, centres, eps=eps, backend=backend, neighbours=default_neighbours(len(centres)))
     if isinstance(fast, GridSum):
         # The grid's gradients are ~10x less accurate than its values: gradients
         # (vertex normals, few points) come from a second grid at eps / 10.
