@@ -67,20 +67,6 @@ def band_targets(grid: int, width: float = 1.5):
     return np.concatenate(out), h
 
 
-def _grid_spacing(kernel, c):
-    """(h, half) the grid backend would use for these centres (without building it)."""
-    import numpy as np
-    from scipy.spatial import cKDTree
-    from scipy.special import erfcinv
-
-    eps = args_eps = 1e-8  # the tight tier of the default rtol 1e-6 (eps = rtol / 10, / 10 inside)
-    sample = c[np.random.default_rng(0).choice(len(c), 2000, replace=False)]
-    rc = float(np.median(cKDTree(c).query(sample, k=1000)[0][:, -1]))
-    s = rc / (math.sqrt(2.0) * float(erfcinv(args_eps))) / math.sqrt(3.0)
-    ratio = max(0.7, math.sqrt(math.log(10.0 / eps) / (2 * math.pi**2)))
-    return s / ratio, int(math.ceil(math.sqrt(2 * math.log(10.0 / eps)) * ratio))
-
-
 def run_one(args) -> dict:
     """One size, in this (fresh) process."""
     import resource
@@ -96,8 +82,8 @@ def run_one(args) -> dict:
     kernel = MultiOrder(args.delta, args.tau)
     c, y, lam, surf, nrm = problem(n)
     res = {"n": n}
-    need = fast.fast_memory(n)
     limit = int(0.8 * available_memory()) if args.memory_limit is None else int(args.memory_limit * 2**30)
+    need = fast.memory_plan(kernel, c, rtol=args.rtol, limit=limit)["total"]  # the fit and a mesh, from these centres
     if need > limit:
         res["refused"] = f"needs ~{need / 2**30:.1f} GB > limit {limit / 2**30:.1f} GB"
         return res
@@ -117,13 +103,8 @@ def run_one(args) -> dict:
         res["poisson_s"] = time.perf_counter() - t
         return res
     if n > args.max_run:
-        grid_need = fast.grid_bytes(c.min(0), c.max(0), *_grid_spacing(kernel, c))
-        over = grid_need > fast.GRID_BUDGET
-        res["refused"] = (f"refused up front (above --max-run {args.max_run}): fast solve memory estimate "
-                          f"{need / 2**30:.1f} GB (limit {limit / 2**30:.1f} GB); grid backend FFT arrays "
-                          f"{grid_need / 2**30:.1f} GB " + ("> budget %.0f GB, so the fmm3dpy fallback "
-                          "(single-threaded, ~%.0f s a product, ~40 products) would run" % (fast.GRID_BUDGET / 2**30, n / 1e5 * 30)
-                          if over else "(within budget)"))
+        res["refused"] = (f"not run (above --max-run {args.max_run}): fast fit + mesh memory plan "
+                          f"{need / 2**30:.1f} GB (limit {limit / 2**30:.1f} GB)")
         return res
     cpu0 = time.process_time()
     t = time.perf_counter()

@@ -47,10 +47,11 @@ self-interaction (and any pair closer than ~1e-15), so
 **Far centres.**  The grid covers the box of the centres that have a
 neighbour within the near-field radius; the few isolated centres beyond it
 (the pipeline's sphere of exterior constraints around the bounding box) are
-summed directly, both as sources and as targets (:func:`outside_centres`,
-at most ``DIRECT_PAIRS`` kernel evaluations a product).  Otherwise the
-sphere set the grid's box: at 100,000 constraints (delta 40, tau 0.005,
-eps 1e-7) 8.1 GB of FFT arrays, over ``GRID_BUDGET``, and the solve fell
+summed directly, both as sources and as targets (:func:`outside_centres`:
+at most ``DIRECT_PAIRS`` kernel evaluations a product, or 0.1 % of the
+centres).  Otherwise the sphere set the grid's box: at 100,000 constraints
+(delta 40, tau 0.005, eps 1e-7) 8.1 GB of FFT arrays, over the then fixed
+2 GB budget, and the solve fell
 back to fmm3dpy (375-615 s); with the split, 0.41 GB and the grid.  The grid
 spacing follows the near-field radius (a neighbour count), not tau.
 
@@ -817,7 +818,7 @@ DIRECT_PAIRS = 50_000_000
 
 def grid_bytes(lo, hi, h: float, half: int) -> int:
     """Bytes the grid backend's FFT arrays take over the box ``[lo, hi]`` ((3,) each) at spacing ``h``
-    with a spreading half-width of ``half`` cells (what :data:`GRID_BUDGET` is compared with)."""
+    with a spreading half-width of ``half`` cells (what a grid's budget, :func:`grid_budget`, is compared with)."""
     return _Mesh.nbytes(lo, hi, h, half)
 
 
@@ -1279,7 +1280,7 @@ def fast_operator(kernel: Kernel, centres, eps: float = DEFAULT_EPS, backend: st
     """The product for a fast solve: :class:`GridSum` or :class:`FastSum`.
 
     ``backend="auto"`` takes the grid for the multi-order kernel when numba is
-    there, ``eps >= 1e-8`` and the grid fits ``GRID_BUDGET`` (it is 5-10x
+    there, ``eps >= 1e-8`` and the grid fits :func:`grid_budget` (it is 5-10x
     faster than fmm3dpy's single-threaded wheel: 100,000 centres, 2.8 s vs
     ~30 s a product), else the FMM (``"fmm"``).  The grid's near field has
     ``neighbours``, default :func:`product_neighbours` (``memory_limit``): right for
@@ -2001,9 +2002,16 @@ def make_evaluator(kernel: Kernel, centres, weights, eps: float = DEFAULT_EPS, c
             if not gradient:
                 return fast
             if "op" not in fine:
-                fine["op"] = GridSum(kernel, fast.centres, eps=eps / 10, tree=fast.tree, outside=fast._out)
-                if "box" in fine:
-                    fine["op"].cover(*fine["box"])
+                try:
+                    fine["op"] = GridSum(kernel, fast.centres, eps=eps / 10, tree=fast.tree, outside=fast._out,
+                                         neighbours=default_neighbours(fast.n))
+                    if "box" in fine:
+                        fine["op"].cover(*fine["box"])
+                except MemoryError as exc:  # gradients from the values' grid (~10 eps) rather than a failure this late
+                    import logging
+
+                    logging.getLogger("o3drbf").info("gradients from the evaluation grid: %s", exc)
+                    fine["op"] = fast
             return fine["op"]
 
         def cover(lo, hi):
