@@ -946,6 +946,79 @@ def check_fit_memory(cset: ConstraintSet, params: Parameters, options: FitOption
         raise
 
 
+#: From this many expected constraints on, :func:`early_fit_check` estimates the fit's memory right
+#: after reading (below it the stages before the fit take seconds anyway).
+EARLY_CHECK_MIN = 50_000
+#: :func:`early_fit_check` refuses only when its estimate exceeds the limit by this factor (it works
+#: on a random subset of the points, not the constraints; :func:`check_fit_memory` decides the rest).
+EARLY_CHECK_SLACK = 1.25
+
+
+def early_fit_check(points, options: Options, extract: bool = True, seed: int = 0) -> None:
+    """Refuse, seconds after reading, a fit that clearly would not fit in memory.
+
+    The constraint count is the one the options will give (``surface_count``
+    or ``"auto"`` or every point, plus exterior and sphere constraints); the
+    memory is :func:`o3drbf.solvers.fast.memory_plan`'s for a seeded random
+    subset of the points of that size, in the normalized box, with the
+    multi-order kernel of the paper's values.  It refuses only above
+    ``EARLY_CHECK_SLACK`` times the limit and only from ``EARLY_CHECK_MIN``
+    constraints, for a fast solve of a multi-order kernel; the exact check
+    (:func:`check_fit_memory`) comes before the fit.
+
+    Raises
+    ------
+    MemoryRefusal
+        With ``cli_hint`` naming a ``--surface-count`` that would fit (when
+        one would) and ``--tiles auto``.
+    """
+    from o3drbf.solvers import MemoryRefusal, fast
+    from o3drbf.solvers.base import memory_limit_or_default
+
+    c, p = options.constraints, options.parameters
+    n_points = len(points)
+    if c.surface_radius is not None or options.fit.solver == "dense":
+        return
+    kernel = p.kernel if isinstance(p.kernel, Kernel) else None
+    if kernel is None and str(p.kernel) != "multiorder":
+        return
+    if kernel is not None and not isinstance(kernel, MultiOrder):
+        return
+    surface = n_points if c.surface_count is None else (
+        auto_surface_count(n_points) if c.surface_count == "auto" else min(int(c.surface_count), n_points))
+    total = int(round(surface * (1 + c.exterior_ratio))) + int(c.sphere_count)
+    if total < EARLY_CHECK_MIN:
+        return
+    norm = Normalization.from_points(points)
+    rng = np.random.default_rng(seed)
+    centres = norm.forward(np.asarray(points, dtype=float)[np.sort(rng.choice(n_points, min(total, n_points), replace=False))])
+    if total > len(centres):  # exterior constraints beside the surface ones
+        extra = centres[rng.choice(len(centres), total - len(centres))] + rng.normal(scale=c.exterior_offset, size=(total - len(centres), 3))
+        centres = np.vstack([centres, extra])
+    kernel = kernel or MultiOrder(PAPER_VALUES["delta"], PAPER_VALUES["tau"])
+    limit = memory_limit_or_default()
+    extraction = 0
+    if extract and options.extract.voxel_size is None:
+        from o3drbf.options import extraction_memory
+
+        res = options.extract.resolution
+        extraction = extraction_memory(AUTO_SIZES["max_resolution"] if res == "auto" else int(res))
+    try:
+        fast.check_memory(total, eps=fast.product_tolerance(1e-6), memory_limit=int(EARLY_CHECK_SLACK * limit), kernel=kernel,
+                          centres=centres, evaluation=extract, extraction_bytes=extraction)
+    except MemoryRefusal as exc:
+        hints = []
+        fraction = fast.fitting_fraction(kernel, centres, limit, eps=fast.product_tolerance(1e-6), evaluation=extract,
+                                         extraction_bytes=extraction, limit=limit)
+        if fraction:
+            count = int(fraction * surface)
+            digits = max(len(str(count)) - 2, 0)
+            hints.append(f"--surface-count {count // 10**digits * 10**digits}")
+        hints.append("--tiles auto")
+        raise MemoryRefusal(f"a fast fit of about {total:,} constraints ({surface:,} surface)" + (" and its mesh" if extract else ""),
+                            exc.need, limit, fraction=fraction, cli_hint="pass " + " or ".join(hints)) from None
+
+
 def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = FitOptions(), *, progress: bool = False,
                 checked: bool = False):
     """Solve for the implicit function; robustly reweighted by default.
@@ -1200,6 +1273,7 @@ def reconstruct(points, normals=None, *, cameras=None, point_camera=None, colors
             check_voxel_size(opts.extract.voxel_size, _extraction_bounds(data, opts.extract))
         data, cameras_dropped = drop_cameras_within_data(data)
     n_input = len(data) + merged
+    early_fit_check(data.points, opts, extract_mesh, seed=seed)  # seconds: before the costly stages
     registration = None
     if data.point_camera is not None:  # scans known: they may be registered to each other
         with stages.stage("register"):

@@ -216,3 +216,24 @@ def test_cli_general_memory_error_does_not_suggest_the_chosen_solver(cloud, caps
     code = main(["reconstruct", str(cloud / "in.ply"), "-o", str(cloud / "o.ply"), "--solver", "fast", "-q"])
     err = capsys.readouterr().err
     assert code == 2 and "3.1 GiB" in err and "--surface-count" in err and "--solver fast" not in err
+
+
+def test_cli_refuses_a_large_fit_right_after_reading(tmp_path, capsys, monkeypatch, machine):
+    """Every point as a constraint (66,000 of them) on a machine with 300 MB: refused by the early
+    estimate, before outliers, normals or constraints are computed, in seconds."""
+    import o3drbf.options
+    import o3drbf.pipeline
+
+    p, n = Sphere(1.0).sample(60000, seed=5)
+    write_points(tmp_path / "big.ply", p, n)
+    monkeypatch.setattr(o3drbf.options, "check_untiled_fits", lambda *a, **k: None)
+    monkeypatch.setattr(o3drbf.pipeline, "remove_outliers", lambda *a, **k: pytest.fail("a costly stage started"))
+    machine(300 * 2**20)
+    t0 = time.perf_counter()
+    code = main(["reconstruct", str(tmp_path / "big.ply"), "-o", str(tmp_path / "o.ply"), "--all-points", "-q"])
+    seconds = time.perf_counter() - t0
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1, err
+    assert re.search(r"out of memory: a fast fit of about 66,064 constraints \(60,000 surface\) and its mesh needs about .*--tiles auto", err), err
+    assert not any(w in err for w in API_WORDS), err
+    assert seconds < 60
