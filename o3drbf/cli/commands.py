@@ -694,7 +694,7 @@ def _memory_message(exc: MemoryError, solver: str | None = None) -> str:
     from o3drbf.solvers.base import MemoryRefusal
 
     if isinstance(exc, MemoryRefusal) and exc.cli_hint:
-        return f"out of memory: {exc.message(exc.cli_hint)}{free} (refused before the fit; nothing was written)"
+        return f"out of memory: {exc.message(exc.cli_hint, free)} (refused before the fit; nothing was written)"
     text = _one_line(exc) if str(exc) else "out of memory"
     solver_hint = ", --solver fast" if solver == "dense" else ""
     return (

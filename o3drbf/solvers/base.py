@@ -54,9 +54,10 @@ class MemoryRefusal(MemoryError):
         self.api_hint = api_hint
         super().__init__(self.message())
 
-    def message(self, hint: str | None = None) -> str:
-        """One line: what, the need, the limit, and ``hint`` (default the library's)."""
-        return f"{self.what} needs about {gigabytes(self.need)} but the limit is {gigabytes(self.limit)}; {hint or self.api_hint}"
+    def message(self, hint: str | None = None, note: str = "") -> str:
+        """One line: what, the need, the limit (followed by ``note``), and ``hint`` (default the library's)."""
+        return (f"{self.what} needs about {gigabytes(self.need)} but the limit is {gigabytes(self.limit)}{note}; "
+                f"{hint or self.api_hint}")
 
     def __reduce__(self):
         return (type(self), (self.what, self.need, self.limit, self.fraction, self.api_hint, self.cli_hint))
