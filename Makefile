@@ -5,7 +5,7 @@ OUT     ?= out
 TEMPLE  ?= ../shared/data/middlebury_templeSparseRing
 export OMP_NUM_THREADS ?= 2
 
-.PHONY: setup demo test test-fast samples bench bench-tiles bench-tiles-large bench-paper figures clean
+.PHONY: setup demo test test-fast samples bench bench-user bench-check bench-tiles bench-tiles-large bench-paper figures clean
 
 setup: $(SETUP)
 
@@ -27,6 +27,14 @@ test-fast: $(SETUP)
 
 bench: $(SETUP)
 	$(PY) benchmarks/run.py
+
+# The user's path alone, recorded as data (benchmarks/recorded/) for docs/benchmarks.md; then check the page quotes it.
+bench-user: $(SETUP)
+	$(PY) benchmarks/user_path.py --record benchmarks/recorded/user_path.json
+	$(PY) benchmarks/check_recorded.py
+
+bench-check: $(SETUP)
+	$(PY) benchmarks/check_recorded.py
 
 # Tiled reconstruction from a file vs Open3D Poisson (1M points, about 10 minutes on 2 shared cores).
 bench-tiles: $(SETUP)

@@ -785,8 +785,9 @@ def default_neighbours(n: int) -> int:
     return min(max(n // 100, 100), 1000)
 
 
-#: Most near-field neighbours of the products at the centres (:func:`product_neighbours`).
-PRODUCT_NEIGHBOURS_MAX = 2000
+#: Most near-field neighbours of the products at the centres (:func:`product_neighbours`): more make
+#: a product a little cheaper in CPU but its sparse near part (and the peak memory) much larger.
+PRODUCT_NEIGHBOURS_MAX = 1000
 
 
 def product_neighbours(n: int, limit: int | None = None) -> int:
