@@ -15,11 +15,13 @@ for delta 10, tau 0.01).  Here the rule is made explicit:
   of the energy rules, so a region no camera saw (the underside of a part
   scanned from above) closes flat between the seen edges, as Poisson's does,
   instead of bulging out along the tangents of the seen walls.  The floor is
-  8 while ``h <= SPARSE_SPACING[0]`` and falls linearly to 0 at
-  ``h = SPARSE_SPACING[1]`` (:func:`sparseness`): on a sparse cloud a decay
-  length of 1/8 of the box is shorter than the spacing itself, f sags
-  between the constraints and the surface falls apart into pieces, or
-  vanishes;
+  8 while ``h <= SPARSE_SPACING[0]`` and moves linearly to
+  ``SPARSE_DELTA_SPACING / h`` (a decay length of four spacings) at
+  ``h = SPARSE_SPACING[1]`` and beyond (:func:`sparseness`): on a sparse
+  cloud a decay length of 1/8 of the box is shorter than the spacing
+  itself, f sags between the constraints and the surface falls apart into
+  pieces, or vanishes, while a decay length much longer than a few
+  spacings bridges the holes of a torus;
 - ``tau = clip(TAU_SPACING * h, 0.005, 0.025)``: the short range follows the
   spacing inside the paper's range (it matters little);
 - ``lambda = phi(0) * (LAMBDA_BASE + LAMBDA_NOISE * (sigma / h)^2)``: the
@@ -101,6 +103,8 @@ DELTA_RANGE = (8.0, 40.0)
 #: dense at or below the first (the floor and the noise term in full),
 #: sparse at or above the second (neither).
 SPARSE_SPACING = (0.06, 0.12)
+#: The delta floor of a sparse cloud: ``SPARSE_DELTA_SPACING / h``.
+SPARSE_DELTA_SPACING = 0.25
 TAU_RANGE = (0.005, 0.025)
 
 
@@ -212,8 +216,9 @@ def sparseness(spacing: float) -> float:
     """How sparse a cloud of constraint spacing ``h`` (box units) is, in [0, 1].
 
     0 while ``h <= SPARSE_SPACING[0]``, 1 from ``SPARSE_SPACING[1]`` on,
-    linear between.  The delta floor is ``(1 - sparseness) * DELTA_RANGE[0]``
-    and the noise term of lambda is scaled by ``1 - sparseness``.
+    linear between.  The delta floor is ``(1 - sparseness) * DELTA_RANGE[0]
+    + sparseness * SPARSE_DELTA_SPACING / h`` and the noise term of lambda is
+    scaled by ``1 - sparseness``.
     """
     lo, hi = SPARSE_SPACING
     return float(np.clip((float(spacing) - lo) / (hi - lo), 0.0, 1.0))
@@ -232,7 +237,7 @@ def parameters_from(spacing: float, noise: float, scale: float = 1.0, denoised: 
     from o3drbf.rbf.kernels import MultiOrder
 
     sparse = sparseness(h)
-    floor = (1.0 - sparse) * DELTA_RANGE[0]
+    floor = (1.0 - sparse) * DELTA_RANGE[0] + sparse * SPARSE_DELTA_SPACING / h
     delta = float(np.clip(DELTA_SPACING / h, floor, DELTA_RANGE[1]))
     tau = float(np.clip(TAU_SPACING * h, *TAU_RANGE))
     ratio = sigma / h
@@ -243,7 +248,8 @@ def parameters_from(spacing: float, noise: float, scale: float = 1.0, denoised: 
         delta_text = f"clip({DELTA_SPACING:g}/h, {DELTA_RANGE[0]:g}, {DELTA_RANGE[1]:g})"
         noise_text = f"{LAMBDA_NOISE:g} (noise/h)^2"
     else:
-        delta_text = f"clip({DELTA_SPACING:g}/h, {floor:.3g}, {DELTA_RANGE[1]:g}) (sparse {sparse:.2f}: floor {DELTA_RANGE[0]:g} x {1 - sparse:.2f})"
+        delta_text = (f"clip({DELTA_SPACING:g}/h, {floor:.3g}, {DELTA_RANGE[1]:g}) (sparse {sparse:.2f}: "
+                      f"floor {1 - sparse:.2f} x {DELTA_RANGE[0]:g} + {sparse:.2f} x {SPARSE_DELTA_SPACING:g}/h)")
         noise_text = f"{1 - sparse:.2f} x {LAMBDA_NOISE:g} (noise/h)^2"
     reason = (
         f"spacing h {h:.4f}, noise {sigma:.4f} ({ratio:.2f} h) in box units{' (denoised constraints)' if denoised else ''}: "
