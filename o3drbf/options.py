@@ -295,7 +295,7 @@ TILE_DEFAULTS = {
 #: constraints on a sphere: 32 gives the exact posterior variance within
 #: 0.04 % at the median, 8 % at worst; 64 within 0.14 % at worst, 3x slower),
 #: and the distance, in mean spacings, at which the distance factor is exp(-1/2).
-CONFIDENCE_DEFAULTS = {"neighbours": 32, "distance_scale": 2.0, "closing": 2.0}
+CONFIDENCE_DEFAULTS = {"neighbours": 32, "distance_scale": 2.0}
 
 #: Kernel parameter values accepted (box units), with what is usual.  Outside
 #: them the arithmetic or the fit breaks down on any data (measured on a

@@ -42,14 +42,16 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from o3drbf.mesh.arrays import mesh_arrays
-from o3drbf.options import CONFIDENCE_DEFAULTS
 from o3drbf.prep.sampling import mean_spacing
 from o3drbf.rbf.variance import local_posterior_variance
 from o3drbf.validation import as_points, check_number, per_point
 
-__all__ = ["VertexConfidence", "vertex_confidence", "combine_confidence", "close_confidence", "trim_by_confidence"]
+__all__ = ["VertexConfidence", "vertex_confidence", "combine_confidence", "close_confidence", "trim_by_confidence", "CLOSING_SPACINGS"]
 
 log = logging.getLogger("o3drbf")
+
+#: Radius of the closing of the combined confidence, in mean spacings.
+CLOSING_SPACINGS = 2.0
 
 @dataclass
 class VertexConfidence:
@@ -163,7 +165,7 @@ def close_confidence(vertices, confidence, radius: float, max_neighbours: int = 
 
 
 def vertex_confidence(surface, mesh, smoothing, observed=None, *, spacing: float | None = None,
-                      neighbours: int, distance_scale: float, closing: float = CONFIDENCE_DEFAULTS["closing"]) -> VertexConfidence:
+                      neighbours: int, distance_scale: float, closing: float = CLOSING_SPACINGS) -> VertexConfidence:
     """Per-vertex confidence of ``mesh`` from the fit ``surface``.
 
     Parameters
@@ -190,8 +192,7 @@ def vertex_confidence(surface, mesh, smoothing, observed=None, *, spacing: float
         Spacings at which the distance factor is exp(-1/2) (default: the same table).
     closing : float
         Radius of the closing of the combined value (:func:`close_confidence`),
-        in spacings; 0 leaves it as combined.  The pipeline's default: the
-        same table.
+        in spacings; 0 leaves it as combined (default :data:`CLOSING_SPACINGS`).
 
     Returns
     -------
