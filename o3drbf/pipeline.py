@@ -851,7 +851,7 @@ def choose_parameters(data: PointSet, cset: ConstraintSet, options: ParameterOpt
         noise = cset.noise if np.isfinite(cset.noise) else estimate_noise(box, seed=seed)
         # The smoothing follows the noise the constraints carry: after denoising, theirs, not the points'.
         chosen = parameters_from(cset.spacing, cset.constraint_noise if cset.denoised else noise, cset.normalization.scale,
-                                 denoised=bool(cset.denoised))
+                                 denoised=bool(cset.denoised), point_spacing=data.spacing * cset.normalization.scale)
         log.info("automatic parameters: %s", chosen.reason)
         given = {**{"delta": chosen.delta, "tau": chosen.tau}, **given}
     if isinstance(options.kernel, Kernel):

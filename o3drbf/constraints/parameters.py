@@ -15,9 +15,11 @@ for delta 10, tau 0.01).  Here the rule is made explicit:
   of the energy rules, so a region no camera saw (the underside of a part
   scanned from above) closes flat between the seen edges, as Poisson's does,
   instead of bulging out along the tangents of the seen walls.  The floor is
-  8 while ``h <= SPARSE_SPACING[0]`` and moves linearly to
+  8 while the *points'* mean spacing ``h_p <= SPARSE_SPACING[0]`` (a dense
+  cloud keeps it whatever number of constraints is picked from it) and moves
+  linearly to
   ``SPARSE_DELTA_SPACING / h`` (a decay length of four spacings) at
-  ``h = SPARSE_SPACING[1]`` and beyond (:func:`sparseness`): on a sparse
+  ``h_p = SPARSE_SPACING[1]`` and beyond (:func:`sparseness`): on a sparse
   cloud a decay length of 1/8 of the box is shorter than the spacing
   itself, f sags between the constraints and the surface falls apart into
   pieces, or vanishes, while a decay length much longer than a few
@@ -213,7 +215,7 @@ def _local_noise(pts: np.ndarray, k: int, max_points: int, rng) -> tuple[float, 
 
 
 def sparseness(spacing: float) -> float:
-    """How sparse a cloud of constraint spacing ``h`` (box units) is, in [0, 1].
+    """How sparse a cloud of mean point spacing ``h`` (box units) is, in [0, 1].
 
     0 while ``h <= SPARSE_SPACING[0]``, 1 from ``SPARSE_SPACING[1]`` on,
     linear between.  The delta floor is ``(1 - sparseness) * DELTA_RANGE[0]
@@ -224,19 +226,23 @@ def sparseness(spacing: float) -> float:
     return float(np.clip((float(spacing) - lo) / (hi - lo), 0.0, 1.0))
 
 
-def parameters_from(spacing: float, noise: float, scale: float = 1.0, denoised: bool = False) -> AutoParameters:
+def parameters_from(spacing: float, noise: float, scale: float = 1.0, denoised: bool = False,
+                    point_spacing: float | None = None) -> AutoParameters:
     """The rule: (spacing h, noise sigma) in box units -> delta, tau, lambda.
 
     See the module notes.  ``scale`` (box units per data unit) is only
     recorded, for reporting in data units.  ``denoised``: the constraints
     were moved onto local fits and ``noise`` is what the fits predict is left
-    (the lambda floor is then ``LAMBDA_BASE_DENOISED``).
+    (the lambda floor is then ``LAMBDA_BASE_DENOISED``).  ``point_spacing``:
+    the mean nearest-neighbour spacing of all the points (box units), which
+    says how sparse the cloud is (:func:`sparseness`); default ``spacing``.
     """
     h = check_number("spacing", spacing, low=0.0, low_open=True)
     sigma = check_number("noise", noise, low=0.0)
+    h_points = h if point_spacing is None else check_number("point_spacing", point_spacing, low=0.0, low_open=True)
     from o3drbf.rbf.kernels import MultiOrder
 
-    sparse = sparseness(h)
+    sparse = sparseness(h_points)
     floor = (1.0 - sparse) * DELTA_RANGE[0] + sparse * SPARSE_DELTA_SPACING / h
     delta = float(np.clip(DELTA_SPACING / h, floor, DELTA_RANGE[1]))
     tau = float(np.clip(TAU_SPACING * h, *TAU_RANGE))
@@ -287,4 +293,4 @@ def choose_parameters(points, *, surface_count: int | None = 3000, surface_radiu
     norm = Normalization.from_points(pts)
     box = norm.forward(pts)
     idx = surface_constraints(box, count=surface_count, radius=surface_radius, seed=seed)
-    return parameters_from(mean_spacing(box[idx]), estimate_noise(box, seed=seed), norm.scale)
+    return parameters_from(mean_spacing(box[idx]), estimate_noise(box, seed=seed), norm.scale, point_spacing=mean_spacing(box))
