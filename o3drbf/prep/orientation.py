@@ -149,9 +149,15 @@ def _hull_votes(points: np.ndarray, normals: np.ndarray):
 
 
 def _pieces(points: np.ndarray, k: int) -> np.ndarray:
-    from o3drbf.pipeline import _neighbour_components
+    """Connected components of the symmetric k-nearest-neighbour graph (labels)."""
+    from scipy import sparse
+    from scipy.sparse.csgraph import connected_components
 
-    return _neighbour_components(points, k=min(k, len(points) - 1))
+    k = min(k, len(points) - 1)
+    _, nb = cKDTree(points).query(points, k=k + 1)
+    rows = np.repeat(np.arange(len(points)), k)
+    graph = sparse.coo_matrix((np.ones(rows.size), (rows, nb[:, 1:].ravel())), shape=(len(points), len(points)))
+    return connected_components(graph, directed=False)[1]
 
 
 def inward_fraction(points, normals, k: int = 10) -> float:
