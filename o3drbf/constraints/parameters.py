@@ -254,7 +254,7 @@ def parameters_from(spacing: float, noise: float, scale: float = 1.0, denoised: 
         delta_text = f"clip({DELTA_SPACING:g}/h, {DELTA_RANGE[0]:g}, {DELTA_RANGE[1]:g})"
         noise_text = f"{LAMBDA_NOISE:g} (noise/h)^2"
     else:
-        delta_text = (f"clip({DELTA_SPACING:g}/h, {floor:.3g}, {DELTA_RANGE[1]:g}) (sparse {sparse:.2f}: "
+        delta_text = (f"clip({DELTA_SPACING:g}/h, {floor:.3g}, {DELTA_RANGE[1]:g}) (points' spacing {h_points:.3g}, sparse {sparse:.2f}: "
                       f"floor {1 - sparse:.2f} x {DELTA_RANGE[0]:g} + {sparse:.2f} x {SPARSE_DELTA_SPACING:g}/h)")
         noise_text = f"{1 - sparse:.2f} x {LAMBDA_NOISE:g} (noise/h)^2"
     reason = (
