@@ -53,6 +53,7 @@ __all__ = [
     "drop_cameras_within_data",
     "remove_outliers",
     "ensure_normals",
+    "check_given_normals",
     "estimate_normals",
     "build_constraints",
     "choose_parameters",
@@ -210,6 +211,9 @@ class Report:
     outliers_removed : int
     outlier_method, outlier_reason : str
     normals_estimated : bool
+    normals_repaired : str
+        Empty when the given normals passed :func:`check_given_normals` (or
+        none were given); else one line: what was wrong and what was done.
     cameras : int
         Cameras used.
     cameras_dropped : list of str
@@ -258,6 +262,7 @@ class Report:
     outlier_method: str = "none"
     outlier_reason: str = ""
     normals_estimated: bool = False
+    normals_repaired: str = ""
     cameras: int = 0
     cameras_dropped: list = field(default_factory=list)
     points_seen_per_camera: list | None = None
@@ -670,6 +675,37 @@ def _neighbour_components(points: np.ndarray, k: int) -> np.ndarray:
     return connected_components(graph, directed=False)[1]
 
 
+def check_given_normals(data: PointSet, *, seed: int = 0):
+    """Check the given normals against the points (and cameras), and repair them when they are wrong.
+
+    See :func:`o3drbf.prep.orientation.check_normals`: normals that point
+    opposite ways between neighbours are re-oriented consistently, normals
+    that all point inward are flipped, and with ``point_camera`` a normal
+    facing away from its camera is flipped.  A repair is logged as a warning.
+
+    Parameters
+    ----------
+    data : PointSet
+    seed : int
+
+    Returns
+    -------
+    PointSet
+        ``data`` itself when there were no given normals or they passed.
+    NormalCheck or None
+        None without given normals.
+    """
+    if data.normals is None or data.normals_estimated:
+        return data, None
+    from o3drbf.prep.orientation import check_normals
+
+    normals, check = check_normals(data.points, data.normals, data.cameras, data.point_camera, seed=seed)
+    if not check.changed:
+        return data, check
+    log.warning("normals repaired (%s): %s", check.action, check.reason)
+    return data.with_normals(normals), check
+
+
 def ensure_normals(data: PointSet, *, seed: int = 0) -> tuple[PointSet, bool]:
     """Estimate normals when there are neither normals nor cameras.
 
@@ -815,7 +851,7 @@ def choose_parameters(data: PointSet, cset: ConstraintSet, options: ParameterOpt
         noise = cset.noise if np.isfinite(cset.noise) else estimate_noise(box, seed=seed)
         # The smoothing follows the noise the constraints carry: after denoising, theirs, not the points'.
         chosen = parameters_from(cset.spacing, cset.constraint_noise if cset.denoised else noise, cset.normalization.scale,
-                                 denoised=bool(cset.denoised))
+                                 denoised=bool(cset.denoised), point_spacing=data.spacing * cset.normalization.scale)
         log.info("automatic parameters: %s", chosen.reason)
         given = {**{"delta": chosen.delta, "tau": chosen.tau}, **given}
     if isinstance(options.kernel, Kernel):
@@ -1281,6 +1317,7 @@ def reconstruct(points, normals=None, *, cameras=None, point_camera=None, colors
     with stages.stage("outliers"):
         data, outliers = remove_outliers(data, opts.outliers, seed=seed)
     with stages.stage("normals"):
+        data, normal_check = check_given_normals(data, seed=seed)
         data, estimated = ensure_normals(data, seed=seed)
     with stages.stage("constraints"):
         cset = build_constraints(data, opts.constraints, seed=seed)
@@ -1322,6 +1359,7 @@ def reconstruct(points, normals=None, *, cameras=None, point_camera=None, colors
         outlier_method=outliers.method,
         outlier_reason=outliers.reason,
         normals_estimated=estimated,
+        normals_repaired=f"{normal_check.action}: {normal_check.reason}" if normal_check is not None and normal_check.changed else "",
         cameras=0 if data.cameras is None else len(data.cameras),
         cameras_dropped=cameras_dropped,
         points_seen_per_camera=cset.points_seen_per_camera,

@@ -55,8 +55,10 @@ def test_spacing_is_the_constraints_nearest_neighbour_distance_in_the_box():
 def test_rule_is_monotone_in_noise_and_spacing():
     lams = [parameters_from(0.04, s).lambda_surface for s in (0.0, 0.005, 0.01, 0.02, 0.04)]
     assert all(b > a for a, b in zip(lams, lams[1:]))
-    deltas = [parameters_from(h, 0.0).delta for h in (0.005, 0.01, 0.02, 0.08)]
-    assert deltas == pytest.approx([24.0, 12.0, 8.0, 8.0])  # 0.12 / h, never below 8
+    deltas = [parameters_from(h, 0.0).delta for h in (0.005, 0.01, 0.02, 0.06)]
+    assert deltas == pytest.approx([24.0, 12.0, 8.0, 8.0])  # 0.12 / h, never below 8 on a dense cloud
+    # a sparse cloud's floor is lower; few constraints picked from dense points keep 8
+    assert parameters_from(0.08, 0.0).delta < 8.0 == parameters_from(0.08, 0.0, point_spacing=0.02).delta
     # Denoised constraints keep the lambda floor 0.03 phi(0); clean ones 0.003 phi(0).
     assert parameters_from(0.04, 0.0).lambda_relative == pytest.approx(0.003)
     assert parameters_from(0.04, 0.0, denoised=True).lambda_relative == pytest.approx(0.03)

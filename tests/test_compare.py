@@ -102,7 +102,7 @@ HUMAN = {
     "Chamfer L1 (data units)": "chamfer_l1", "Hausdorff (data units)": "hausdorff", "F-score @ τ": "f_score",
     "Precision @ τ": "precision", "Recall @ τ": "recall", "Normal consistency": "normal_consistency",
 }
-NAMES = {"multiorder": "o3drbf multi-order (default)", "poisson": "Open3D Poisson", "bpa": "Open3D ball pivoting"}
+NAMES = {"multiorder": "o3drbf multi-order (default)", "poisson": "Open3D Poisson (raw points)", "bpa": "Open3D ball pivoting"}
 
 
 def _cell_matches(cell, value):
@@ -313,3 +313,35 @@ def test_main_compare_end_to_end(torus_data, tmp_path, capsys):
     args.truth, args.methods = None, "poisson,bogus"
     with pytest.raises(ValueError, match="valid methods: multiorder, thinplate"):
         C.main_compare(args)
+
+
+def test_poisson_both_ways_on_scans_with_outliers():
+    # Poisson on the raw points and as Open3D's tutorial runs it (statistical outliers removed, 5 % density trim),
+    # both labelled in the table and the picture's titles.
+    from o3drbf.synthetic.scans import range_scans
+
+    points, owner, cams = range_scans(_truth(), n_views=3, width=80, height=60, noise=0.002, outliers=0.02, seed=0)
+    rows, meshes = C.compare_with_meshes(points, None, cams, _truth(), "poisson,poisson-tutorial", point_camera=owner, n_samples=N_SAMPLES)
+    by = {r["method"]: r for r in rows}
+    assert all(r["error"] is None for r in rows), rows
+    raw, tutorial = by["poisson"], by["poisson-tutorial"]
+    assert tutorial["chamfer_l1"] < 0.2 * raw["chamfer_l1"] and tutorial["f_score"] > raw["f_score"], (raw, tutorial)
+    assert not tutorial["watertight"]  # trimmed: never closed
+    table = C.markdown_table(rows, len(points), "torus.ply")
+    assert "| Open3D Poisson (raw points) |" in table
+    assert "| Open3D Poisson (tutorial: outlier removal + density trim) |" in table
+    titles = [C.row_title(r) for r in rows]
+    assert titles[0].startswith("Open3D Poisson (raw points)\nChamfer")
+    assert titles[1].replace("\n", " ").startswith("Open3D Poisson (tutorial: outlier removal + density trim) Chamfer")
+    assert "poisson-tutorial" in C.available_methods()
+
+
+def test_both_poissons_get_the_clouds_normals(torus_data, monkeypatch):
+    points, normals = torus_data
+
+    def no_estimate(*args, **kwargs):
+        raise AssertionError("the cloud has normals: none should be estimated")
+
+    monkeypatch.setattr(C, "open3d_normals", no_estimate)
+    rows = C.compare(points, normals, methods="poisson,poisson-tutorial")
+    assert [r["error"] for r in rows] == [None, None]

@@ -443,6 +443,7 @@ def summary(result, points, input_path, output_path, model_path=None, seconds=No
         f"o3drbf reconstruct: {input_path} -> {output_path}",
         f"  points           {s.input_points or s.points:,} read, {s.points:,} kept" + (f" ({', '.join(removed)})" if removed else "")
         + ("  (normals estimated)" if s.normals_estimated else ""),
+        *([f"  normals          {s.normals_repaired}"] if getattr(s, "normals_repaired", "") else []),
         *([f"  registration     {s.registration['reason']}"] if s.registration else []),
         f"  outliers         {s.outliers_removed:,} removed ({s.outlier_method}: {s.outlier_reason})",
         f"  constraints      {s.surface_constraints:,} surface, {s.exterior_constraints:,} exterior, {s.sphere_constraints:,} sphere",

@@ -8,13 +8,22 @@ for delta 10, tau 0.01).  Here the rule is made explicit:
   Poisson-disc subset the kernel actually sees), box units;
 - ``sigma``: the noise of the points across the surface, box units, from
   :func:`estimate_noise` (local quadric fits);
-- ``delta = clip(DELTA_SPACING / h, 8, 40)``: the basis's medium-range decay
+- ``delta = clip(DELTA_SPACING / h, floor(h), 40)``: the basis's medium-range decay
   length ``1 / delta`` is a fixed number of constraint spacings, so that each
   basis function spans its neighbours whatever the density, but never longer
   than 1/8 of the box: beyond ``1 / delta`` the first-order (membrane) term
   of the energy rules, so a region no camera saw (the underside of a part
   scanned from above) closes flat between the seen edges, as Poisson's does,
-  instead of bulging out along the tangents of the seen walls;
+  instead of bulging out along the tangents of the seen walls.  The floor is
+  8 while the *points'* mean spacing ``h_p <= SPARSE_SPACING[0]`` (a dense
+  cloud keeps it whatever number of constraints is picked from it) and moves
+  linearly to
+  ``SPARSE_DELTA_SPACING / h`` (a decay length of four spacings) at
+  ``h_p = SPARSE_SPACING[1]`` and beyond (:func:`sparseness`): on a sparse
+  cloud a decay length of 1/8 of the box is shorter than the spacing
+  itself, f sags between the constraints and the surface falls apart into
+  pieces, or vanishes, while a decay length much longer than a few
+  spacings bridges the holes of a torus;
 - ``tau = clip(TAU_SPACING * h, 0.005, 0.025)``: the short range follows the
   spacing inside the paper's range (it matters little);
 - ``lambda = phi(0) * (LAMBDA_BASE + LAMBDA_NOISE * (sigma / h)^2)``: the
@@ -22,7 +31,10 @@ for delta 10, tau 0.01).  Here the rule is made explicit:
   system), and grows with the noise variance measured in constraint spacings;
   constraints moved onto local fits (denoised) keep a floor of
   ``LAMBDA_BASE_DENOISED`` instead: their leftover error is correlated along
-  the surface, which the predicted ``sigma`` does not see.
+  the surface, which the predicted ``sigma`` does not see.  The noise term
+  fades out with the same sparseness as the delta floor: the neighbourhoods
+  of a sparse cloud are as wide as its features, so the local fits measure
+  the shape, not the noise.
 
 Calibration (``Torus(0.7, 0.25)``, 15,000 samples with true normals and
 noise along them, 3,000 or 1,000 constraints, resolution 64; Chamfer L1 to
@@ -75,6 +87,8 @@ __all__ = [
     "estimate_noise",
     "parameters_from",
     "PAPER_PARAMETERS",
+    "SPARSE_SPACING",
+    "sparseness",
 ]
 
 #: The paper's fixed values (normalized box): what ``--no-auto`` uses.
@@ -87,6 +101,12 @@ LAMBDA_BASE = 0.003
 LAMBDA_BASE_DENOISED = 0.03
 LAMBDA_NOISE = 1.5
 DELTA_RANGE = (8.0, 40.0)
+#: Constraint spacings (box units) between which a cloud counts as sparse:
+#: dense at or below the first (the floor and the noise term in full),
+#: sparse at or above the second (neither).
+SPARSE_SPACING = (0.06, 0.12)
+#: The delta floor of a sparse cloud: ``SPARSE_DELTA_SPACING / h``.
+SPARSE_DELTA_SPACING = 0.25
 TAU_RANGE = (0.005, 0.025)
 
 
@@ -194,28 +214,53 @@ def _local_noise(pts: np.ndarray, k: int, max_points: int, rng) -> tuple[float, 
     return float(np.median(local_sigma)), float(np.median(dist[:, -1]))
 
 
-def parameters_from(spacing: float, noise: float, scale: float = 1.0, denoised: bool = False) -> AutoParameters:
+def sparseness(spacing: float) -> float:
+    """How sparse a cloud of mean point spacing ``h`` (box units) is, in [0, 1].
+
+    0 while ``h <= SPARSE_SPACING[0]``, 1 from ``SPARSE_SPACING[1]`` on,
+    linear between.  The delta floor is ``(1 - sparseness) * DELTA_RANGE[0]
+    + sparseness * SPARSE_DELTA_SPACING / h`` and the noise term of lambda is
+    scaled by ``1 - sparseness``.
+    """
+    lo, hi = SPARSE_SPACING
+    return float(np.clip((float(spacing) - lo) / (hi - lo), 0.0, 1.0))
+
+
+def parameters_from(spacing: float, noise: float, scale: float = 1.0, denoised: bool = False,
+                    point_spacing: float | None = None) -> AutoParameters:
     """The rule: (spacing h, noise sigma) in box units -> delta, tau, lambda.
 
     See the module notes.  ``scale`` (box units per data unit) is only
     recorded, for reporting in data units.  ``denoised``: the constraints
     were moved onto local fits and ``noise`` is what the fits predict is left
-    (the lambda floor is then ``LAMBDA_BASE_DENOISED``).
+    (the lambda floor is then ``LAMBDA_BASE_DENOISED``).  ``point_spacing``:
+    the mean nearest-neighbour spacing of all the points (box units), which
+    says how sparse the cloud is (:func:`sparseness`); default ``spacing``.
     """
     h = check_number("spacing", spacing, low=0.0, low_open=True)
     sigma = check_number("noise", noise, low=0.0)
+    h_points = h if point_spacing is None else check_number("point_spacing", point_spacing, low=0.0, low_open=True)
     from o3drbf.rbf.kernels import MultiOrder
 
-    delta = float(np.clip(DELTA_SPACING / h, *DELTA_RANGE))
+    sparse = sparseness(h_points)
+    floor = (1.0 - sparse) * DELTA_RANGE[0] + sparse * SPARSE_DELTA_SPACING / h
+    delta = float(np.clip(DELTA_SPACING / h, floor, DELTA_RANGE[1]))
     tau = float(np.clip(TAU_SPACING * h, *TAU_RANGE))
     ratio = sigma / h
     base = LAMBDA_BASE_DENOISED if denoised else LAMBDA_BASE
-    lam_rel = base + LAMBDA_NOISE * ratio * ratio
+    lam_rel = base + (1.0 - sparse) * LAMBDA_NOISE * ratio * ratio
     lam = lam_rel * MultiOrder(delta, tau).value_at_zero
+    if sparse == 0.0:
+        delta_text = f"clip({DELTA_SPACING:g}/h, {DELTA_RANGE[0]:g}, {DELTA_RANGE[1]:g})"
+        noise_text = f"{LAMBDA_NOISE:g} (noise/h)^2"
+    else:
+        delta_text = (f"clip({DELTA_SPACING:g}/h, {floor:.3g}, {DELTA_RANGE[1]:g}) (points' spacing {h_points:.3g}, sparse {sparse:.2f}: "
+                      f"floor {1 - sparse:.2f} x {DELTA_RANGE[0]:g} + {sparse:.2f} x {SPARSE_DELTA_SPACING:g}/h)")
+        noise_text = f"{1 - sparse:.2f} x {LAMBDA_NOISE:g} (noise/h)^2"
     reason = (
         f"spacing h {h:.4f}, noise {sigma:.4f} ({ratio:.2f} h) in box units{' (denoised constraints)' if denoised else ''}: "
-        f"delta = clip({DELTA_SPACING:g}/h, {DELTA_RANGE[0]:g}, {DELTA_RANGE[1]:g}) = {delta:.3g}, tau = {TAU_SPACING:g} h = {tau:.3g}, "
-        f"lambda = ({base:g} + {LAMBDA_NOISE:g} (noise/h)^2) phi(0) = {lam_rel:.3g} phi(0) = {lam:.3g}"
+        f"delta = {delta_text} = {delta:.3g}, tau = {TAU_SPACING:g} h = {tau:.3g}, "
+        f"lambda = ({base:g} + {noise_text}) phi(0) = {lam_rel:.3g} phi(0) = {lam:.3g}"
     )
     return AutoParameters(delta, tau, float(lam), float(lam_rel), float(h), float(sigma), float(scale), reason)
 
@@ -248,4 +293,4 @@ def choose_parameters(points, *, surface_count: int | None = 3000, surface_radiu
     norm = Normalization.from_points(pts)
     box = norm.forward(pts)
     idx = surface_constraints(box, count=surface_count, radius=surface_radius, seed=seed)
-    return parameters_from(mean_spacing(box[idx]), estimate_noise(box, seed=seed), norm.scale)
+    return parameters_from(mean_spacing(box[idx]), estimate_noise(box, seed=seed), norm.scale, point_spacing=mean_spacing(box))

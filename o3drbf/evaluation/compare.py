@@ -3,15 +3,21 @@
     o3drbf compare INPUT [--cameras F] [--truth MESH] [--methods ...] [-o OUT_DIR]
 
 Methods (:data:`METHODS`): the three o3drbf bases (``multiorder``,
-``thinplate``, ``gaussian``) and three Open3D reconstructions run the way a
-user would run them (``poisson``, ``bpa`` ball pivoting, ``alpha`` shapes):
+``thinplate``, ``gaussian``) and Open3D's reconstructions run the way a
+user would run them (``poisson`` on the raw points, ``poisson-tutorial`` as
+Open3D's tutorial runs it, ``bpa`` ball pivoting, ``alpha`` shapes):
 
 - normals: the given ones; otherwise Open3D estimates them (30 nearest
   neighbours) and orients them -- toward the camera that saw each point (or
   the nearest camera) when cameras are given, otherwise consistently over
   the neighbour graph and then outward (:func:`o3drbf.pipeline.estimate_normals`);
-- Poisson: octree depth ``poisson_depth`` (8) and optional density trimming
-  (``density_quantile``, 0 keeps the closed surface);
+- Poisson (raw points): octree depth ``poisson_depth`` (8) and optional
+  density trimming (``density_quantile``, 0 keeps the closed surface);
+- Poisson (tutorial): Open3D's statistical outlier removal first
+  (:data:`TUTORIAL`: 20 neighbours, 2 standard deviations), normals as above
+  on the points kept (the cloud's own normals when it has them), the same
+  depth, then the vertices below the 5 % density quantile removed (never
+  closed), as ``benchmarks/paper/robustness.py`` runs it;
 - ball pivoting: radii ``[1, 2, 4] x`` the mean nearest-neighbour spacing;
 - alpha shapes: ``alpha = 3 x`` the mean spacing.
 
@@ -79,10 +85,15 @@ __all__ = [
     "add_compare_arguments",
     "parse_methods",
     "COLUMNS",
+    "TUTORIAL",
 ]
 
 #: Open3D's reconstructions run beside o3drbf's kernels.
-PEERS = ("poisson", "bpa", "alpha")
+PEERS = ("poisson", "poisson-tutorial", "bpa", "alpha")
+
+#: How ``poisson-tutorial`` runs Poisson: Open3D's statistical outlier
+#: removal (neighbours, standard deviations), then density trimming at this quantile.
+TUTORIAL = {"nb_neighbors": 20, "std_ratio": 2.0, "density_quantile": 0.05}
 
 
 def available_methods() -> tuple[str, ...]:
@@ -239,6 +250,8 @@ def _run(name, points, normals, cameras, options):
         result = reconstruct(points, normals, cameras=cameras, point_camera=options.get("point_camera") if cameras is not None else None,
                              kernel=name, seed=seed, **kw)
         return result.mesh
+    if name == "poisson-tutorial":
+        return _poisson_tutorial(points, normals, cameras, options)
     if normals is None:
         normals = open3d_normals(points, cameras, options.get("point_camera"))
     spacing = options.get("spacing") or mean_spacing(points)
@@ -260,6 +273,22 @@ def _run(name, points, normals, cameras, options):
     return mesh
 
 
+def _poisson_tutorial(points, normals, cameras, options):
+    """Poisson as Open3D's tutorial runs it: outliers removed, normals (given or estimated on what is left), density trim."""
+    from o3drbf.evaluation.peers import poisson
+    from o3drbf.prep.outliers import statistical_outliers
+
+    keep, _ = statistical_outliers(points, TUTORIAL["nb_neighbors"], TUTORIAL["std_ratio"])
+    pts = points[keep]
+    if normals is not None:
+        nrm = np.asarray(normals, dtype=float)[keep]
+    else:
+        pc = options.get("point_camera")
+        pc = None if pc is None else np.asarray(pc).reshape(-1)[keep]
+        nrm = open3d_normals(pts, cameras, pc)
+    return poisson(pts, nrm, depth=options.get("poisson_depth", 8), density_quantile=TUTORIAL["density_quantile"])
+
+
 def run_method(name: str, points, normals=None, cameras=None, **options):
     """Run one method on the points.
 
@@ -274,7 +303,7 @@ def run_method(name: str, points, normals=None, cameras=None, **options):
     cameras : sequence of Camera, CameraSet or camera file, optional
     **options
         ``resolution``, ``surface_count``, ``seed`` (o3drbf);
-        ``poisson_depth`` (8), ``density_quantile`` (0); ``spacing`` (the
+        ``poisson_depth`` (8), ``density_quantile`` (0, raw Poisson only); ``spacing`` (the
         mean nearest-neighbour spacing, computed when absent),
         ``bpa_radii`` (multiples of the spacing, ``(1, 2, 4)``), ``alpha``
         (data units, default ``3 x spacing``); ``point_camera``.
@@ -524,7 +553,8 @@ LABELS = {
     "multiorder": "o3drbf multi-order",
     "thinplate": "o3drbf thin-plate",
     "gaussian": "o3drbf Gaussian",
-    "poisson": "Open3D Poisson",
+    "poisson": "Open3D Poisson (raw points)",
+    "poisson-tutorial": "Open3D Poisson (tutorial: outlier removal + density trim)",
     "bpa": "Open3D ball pivoting",
     "alpha": "Open3D alpha shape",
 }
@@ -667,9 +697,10 @@ def _wrap(text: str, width: int = 40) -> str:
 
 
 def row_title(row: dict) -> str:
-    """The title of a method's row in :func:`picture`: its name, then the
-    table's Chamfer L1, F-score, watertight and pieces (as in the table)."""
-    lines = [method_label(row["method"])]
+    """The title of a method's row in :func:`picture`: its name (wrapped at
+    36 characters), then the table's Chamfer L1, F-score, watertight and
+    pieces (as in the table)."""
+    lines = [_wrap(method_label(row["method"]), 36)]  # long labels on two lines: a panel is narrow
     if row.get("error"):
         return lines[0] + "\n" + _wrap("FAILED: " + row["error"])
     if row.get("chamfer_l1") is not None:
@@ -804,7 +835,8 @@ def add_compare_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentP
 
     parser.add_argument("--resolution", type=count_or_auto, default=DEFAULTS["resolution"], help="o3drbf marching-cubes resolution, auto or N (default %(default)s)")
     parser.add_argument("--poisson-depth", type=int, default=8, help="Open3D Poisson octree depth (default %(default)s)")
-    parser.add_argument("--density-quantile", type=float, default=0.0, help="Poisson: trim vertices below this density quantile (default %(default)s: closed surface)")
+    parser.add_argument("--density-quantile", type=float, default=0.0, help="Poisson (raw points): trim vertices below this density quantile (default %(default)s: closed surface; "
+                        "the tutorial variant always trims at 0.05)")
     parser.add_argument("--seed", type=int, default=0, help="sampling seed (default %(default)s)")
     parser.add_argument("--up", choices=sorted(_UP), default="z", help="the data's up axis, for the picture's views (default %(default)s; the Stanford bunny: y)")
     return parser

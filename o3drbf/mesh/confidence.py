@@ -16,7 +16,15 @@ They combine into one ``confidence`` in [0, 1]::
 
 (``scale`` = :data:`o3drbf.options.CONFIDENCE_DEFAULTS` ``["distance_scale"]``
 spacings).  The first factor is what the kernel knows; the second is the
-plain geometric test, so a vertex is trusted only when both agree.  For a
+plain geometric test, so a vertex is trusted only when both agree.
+
+Both dip between the observed points, most where a random sample leaves a
+gap of two or three spacings: trimming there would punch holes into what
+was seen.  The combined value is therefore closed (a morphological closing
+over the vertices: the largest value within ``closing`` spacings, then the
+smallest of those within the same radius, :func:`close_confidence`), which
+fills dips narrower than about twice that radius and leaves the edge of the
+seen region where it was.  For a
 kernel that is not positive definite (thin-plate) there is no variance:
 ``variance`` is NaN and ``confidence`` is the distance factor alone.
 
@@ -38,9 +46,12 @@ from o3drbf.prep.sampling import mean_spacing
 from o3drbf.rbf.variance import local_posterior_variance
 from o3drbf.validation import as_points, check_number, per_point
 
-__all__ = ["VertexConfidence", "vertex_confidence", "combine_confidence", "trim_by_confidence"]
+__all__ = ["VertexConfidence", "vertex_confidence", "combine_confidence", "close_confidence", "trim_by_confidence", "CLOSING_SPACINGS"]
 
 log = logging.getLogger("o3drbf")
+
+#: Radius of the closing of the combined confidence, in mean spacings.
+CLOSING_SPACINGS = 2.0
 
 @dataclass
 class VertexConfidence:
@@ -50,7 +61,8 @@ class VertexConfidence:
     ----------
     confidence : (V,) ndarray
         In [0, 1]: ``(1 - variance) * exp(-distance^2 / (2 scale^2))``
-        (the distance factor alone when ``variance`` is NaN).
+        (the distance factor alone when ``variance`` is NaN), closed over
+        ``closing`` spacings (:func:`close_confidence`).
     distance : (V,) ndarray
         Distance to the nearest observed point, in mean spacings.
     variance : (V,) ndarray
@@ -62,6 +74,8 @@ class VertexConfidence:
         Constraints per local GP neighbourhood.
     distance_scale : float
         ``scale`` above, in spacings.
+    closing : float
+        Radius of the closing, in spacings (0: none).
     """
 
     confidence: np.ndarray
@@ -70,11 +84,12 @@ class VertexConfidence:
     spacing: float
     neighbours: int
     distance_scale: float
+    closing: float = 0.0
 
     def subset(self, keep) -> "VertexConfidence":
         """The values of the vertices selected by ``keep`` ((V,) bool or indices), e.g. after trimming."""
         return VertexConfidence(self.confidence[keep], self.distance[keep], self.variance[keep], self.spacing,
-                                self.neighbours, self.distance_scale)
+                                self.neighbours, self.distance_scale, self.closing)
 
     def summary(self) -> dict:
         """Mean, min and quartiles of ``confidence`` (plain floats, for reports)."""
@@ -108,8 +123,49 @@ def combine_confidence(distance, variance, distance_scale: float) -> np.ndarray:
     return np.clip(known * near, 0.0, 1.0)
 
 
+def close_confidence(vertices, confidence, radius: float, max_neighbours: int = 96, chunk: int = 20000) -> np.ndarray:
+    """Morphological closing of per-vertex values: the largest within ``radius``, then the smallest of those.
+
+    Dips narrower than about ``2 radius`` are filled; a broad low region
+    keeps its edge where it was (up to the vertex spacing).
+
+    Parameters
+    ----------
+    vertices : (V, 3) array_like
+    confidence : (V,) array_like
+    radius : float
+        Data units, >= 0 (0: the values unchanged).
+    max_neighbours : int
+        At most this many nearest vertices within ``radius`` are looked at
+        (on very fine meshes the ball shrinks to them).
+    chunk : int
+        Vertices per KD-tree query (bounds the memory).
+
+    Returns
+    -------
+    (V,) ndarray
+    """
+    v = as_points(vertices, "vertices", min_count=0)
+    c = np.asarray(confidence, dtype=float).ravel()
+    radius = check_number("closing radius", radius, low=0.0)
+    if radius == 0 or len(v) < 2:
+        return c.copy()
+    tree = cKDTree(v)
+    k = min(int(max_neighbours), len(v))
+
+    def extreme(values, pick):
+        padded = np.append(values, np.nan)  # index len(v): no neighbour
+        out = np.empty(len(v))
+        for start in range(0, len(v), chunk):
+            _, nb = tree.query(v[start:start + chunk], k=k, distance_upper_bound=radius)
+            out[start:start + chunk] = pick(padded[nb.reshape(-1, k)], axis=1)
+        return out
+
+    return extreme(extreme(c, np.nanmax), np.nanmin)
+
+
 def vertex_confidence(surface, mesh, smoothing, observed=None, *, spacing: float | None = None,
-                      neighbours: int, distance_scale: float) -> VertexConfidence:
+                      neighbours: int, distance_scale: float, closing: float = CLOSING_SPACINGS) -> VertexConfidence:
     """Per-vertex confidence of ``mesh`` from the fit ``surface``.
 
     Parameters
@@ -134,6 +190,9 @@ def vertex_confidence(surface, mesh, smoothing, observed=None, *, spacing: float
         pipeline's default: :data:`o3drbf.options.CONFIDENCE_DEFAULTS`.
     distance_scale : float
         Spacings at which the distance factor is exp(-1/2) (default: the same table).
+    closing : float
+        Radius of the closing of the combined value (:func:`close_confidence`),
+        in spacings; 0 leaves it as combined (default :data:`CLOSING_SPACINGS`).
 
     Returns
     -------
@@ -162,7 +221,9 @@ def vertex_confidence(surface, mesh, smoothing, observed=None, *, spacing: float
         log.info("the %s kernel is not positive definite: confidence from the distance alone", surface.kernel.name)
         variance = np.full(len(vertices), np.nan)
     conf = combine_confidence(distance, variance, scale)
-    return VertexConfidence(conf, distance, variance, float(spacing), min(neighbours, len(centres)), float(scale))
+    closing = check_number("closing", closing, low=0.0)
+    conf = close_confidence(vertices, conf, closing * spacing)
+    return VertexConfidence(conf, distance, variance, float(spacing), min(neighbours, len(centres)), float(scale), float(closing))
 
 
 def trim_by_confidence(mesh, confidence, threshold: float):
