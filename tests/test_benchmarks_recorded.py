@@ -1,0 +1,25 @@
+"""The recorded benchmark runs (benchmarks/recorded/) and docs/benchmarks.md agree (`make bench-check`)."""
+
+import json
+import sys
+
+from conftest import REPO
+
+sys.path.insert(0, str(REPO / "benchmarks"))
+import check_recorded  # noqa: E402
+
+
+def test_docs_quote_every_recorded_run():
+    assert check_recorded.problems() == []
+
+
+def test_a_page_that_drifted_from_its_run_is_caught(tmp_path):
+    run = {"date": "x", "machine": {}, "rows": [{"case": "scan 27k", "tool": "o3drbf", "rc": 2}],
+           "tables": "| case | tool |\n| scan 27k | o3drbf | 12.3 |"}
+    (tmp_path / "run.json").write_text(json.dumps(run))
+    page = tmp_path / "page.md"
+    page.write_text("| case | tool |\n| scan 27k | o3drbf | 12.4 |\n")
+    found = check_recorded.problems(tmp_path, page)
+    assert len(found) == 2 and "12.3" in found[0] and "exited 2" in found[1]
+    page.write_text("| case | tool |\n| scan 27k | o3drbf | 12.3 |\n(exit 2: the scan was refused)\n")
+    assert check_recorded.problems(tmp_path, page) == []
