@@ -5,6 +5,7 @@ The data's path, each stage a public function that can be called alone::
     data = PointSet.create(points, normals, cameras=...)        # read (validated once)
     data, registration = register_scans(data, options.registration)  # scans registered to each other (with cameras)
     data, outliers = remove_outliers(data, options.outliers)    # outliers
+    data, check = check_given_normals(data)                     # given normals checked, repaired when wrong
     data, estimated = ensure_normals(data)                      # normals, when neither normals nor cameras
     cset = build_constraints(data, options.constraints)         # constraints (normalized box)
     params = choose_parameters(data, cset, options.parameters)  # kernel and smoothing
