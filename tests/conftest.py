@@ -38,6 +38,9 @@ SLOW_MODULES = {
     "test_tiles.py", "test_tiles_outofcore.py",
 }
 SLOW_TESTS = {
+    "test_sparse.py": {"test_sparse_cloud_gives_one_closed_piece"},
+    "test_fast_memory.py": {"test_cli_refuses_a_large_fit_right_after_reading", "test_looser_companions_never_take_a_finer_grid",
+                            "test_fast_refusal_is_up_front_and_names_a_count_that_fits"},
     "test_auto.py": {
         "test_auto_beats_the_paper_values_on_a_noisy_torus", "test_cli_defaults_to_auto_and_no_auto_gives_the_paper_values",
         "test_explicit_values_win_and_stats_record_the_source"
@@ -49,10 +52,12 @@ SLOW_TESTS = {
     },
     "test_color.py": {"test_known_colours_are_recovered_on_a_reconstructed_torus"},
     "test_compare.py": {
+        "test_poisson_both_ways_on_scans_with_outliers", "test_both_poissons_get_the_clouds_normals",
         "test_main_compare_end_to_end", "test_picture_distance_colours_and_hidden_pieces", "test_picture_grid",
         "test_rows_and_measures", "test_shifted_truth_fails_the_bound"
     },
     "test_confidence.py": {
+        "test_trim_half_sphere_sample_is_one_disc",
         "test_a_kernel_without_a_covariance_is_refused_and_confidence_falls_back_to_distance",
         "test_command_line_confidence_and_trim", "test_one_camera_seeing_one_side_of_a_sphere",
         "test_trim_removes_the_unseen_part_and_leaves_an_open_surface"
