@@ -17,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
+import uuid
 
 from o3drbf.progress import progress_bar
 from o3drbf.validation import check_number
@@ -164,10 +165,11 @@ def run_tasks(client, func, count: int, shared: dict, progress: bool = False, de
             # hash=False: a fresh key per call (a re-scattered equal object could hit a key being released).
             remote = {k: client.scatter(v, broadcast=True, hash=False) for k, v in shared.items()}
             futures = []
+            run = uuid.uuid4().hex  # not id(): a later call's dict can reuse a freed one's id, and so its keys
             for i in range(count):
                 mine = {k: (v if isinstance(v, (str, int, float, type(None))) else client.scatter([v], hash=False)[0])
                         for k, v in own[i].items()}
-                futures.append(client.submit(measured_call, func, i, pure=False, key=f"{desc}-{i}-{id(remote)}", **remote, **mine))
+                futures.append(client.submit(measured_call, func, i, pure=False, key=f"{desc}-{i}-{run}", **remote, **mine))
             index = {f.key: i for i, f in enumerate(futures)}
             for fut in as_completed(futures):
                 i = index[fut.key]
