@@ -1,7 +1,7 @@
 """Compile o3drbf's Numba kernels once, into their on-disk cache, so a user's first run does not pay for it.
 
 Run by ``scripts/setup.sh`` after installing (and again whenever a source file changed):
-two small reconstructions on the command line's path, points with normals and a range
+two small reconstructions on the command line's path (with its closing summary), points with normals and a range
 scan with cameras, written into a temporary folder and thrown away.
 
     python scripts/warm_up.py
@@ -9,6 +9,8 @@ scan with cameras, written into a temporary folder and thrown away.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import sys
 import tempfile
 import time
@@ -32,7 +34,9 @@ def main() -> int:
         scan_points, owner, cameras = range_scans(mesh, n_views=3, width=80, height=60, seed=0)
         scan = write_scan_json(folder / "scan.json", scan_points, cameras, point_camera=owner)
         for source in (cloud, scan):
-            code = cli(["reconstruct", str(source), "-o", str(folder / "mesh.ply"), "-q"])
+            # Not -q: the closing summary's mesh checks (self-intersections) have kernels of their own.
+            with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+                code = cli(["reconstruct", str(source), "-o", str(folder / "mesh.ply")])
             if code:
                 print(f"warm-up: reconstruct {source.name} exited {code}", file=sys.stderr)
                 return code

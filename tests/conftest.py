@@ -38,6 +38,7 @@ SLOW_MODULES = {
     "test_tiles.py", "test_tiles_outofcore.py",
 }
 SLOW_TESTS = {
+    "test_startup.py": {"test_set_up_warm_up_leaves_nothing_to_compile_on_a_first_run"},
     "test_sparse.py": {"test_sparse_cloud_gives_one_closed_piece"},
     "test_fast_memory.py": {"test_cli_refuses_a_large_fit_right_after_reading", "test_looser_companions_never_take_a_finer_grid",
                             "test_fast_refusal_is_up_front_and_names_a_count_that_fits"},

@@ -63,3 +63,29 @@ def test_report_must_be_a_new_json_file(tmp_path, capsys, name):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and ("--report" in err[0] or "input" in err[0]), err
     assert (tmp_path / "sphere.ply").read_bytes() == before and not (tmp_path / "m.ply").exists()
+
+
+def test_set_up_warm_up_leaves_nothing_to_compile_on_a_first_run(tmp_path):
+    """``scripts/warm_up.py`` (run by ``make setup``) caches every kernel a default run with its summary uses."""
+    import os
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    warm = subprocess.run([sys.executable, str(root / "scripts" / "warm_up.py")], capture_output=True, text=True, env=env, timeout=900)
+    assert warm.returncode == 0, warm.stderr[-2000:]
+    p, n = Sphere(1.0).sample(2000, seed=5)
+    write_points(tmp_path / "sphere.ply", p, n)
+    code = (
+        "import gc, sys\n"
+        "from numba.core.registry import CPUDispatcher\n"
+        "from o3drbf.cli import main\n"
+        f"assert main(['reconstruct', {str(tmp_path / 'sphere.ply')!r}, '-o', {str(tmp_path / 'm.ply')!r}]) == 0\n"
+        "compiled = sorted(f'{d.py_func.__module__}.{d.__name__}' for d in gc.get_objects()\n"
+        "                  if isinstance(d, CPUDispatcher) and d.py_func.__module__.startswith('o3drbf') and d.stats.cache_misses)\n"
+        "print('COMPILED', *compiled, file=sys.stderr)\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
+    compiled = run.stderr.rsplit("COMPILED", 1)[1].split()
+    assert compiled == [], f"compiled on the first run after set-up: {compiled}"
