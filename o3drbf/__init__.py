@@ -19,31 +19,38 @@ from o3drbf.startup import defer_open3d_plotly
 
 defer_open3d_plotly()  # before anything imports open3d (see o3drbf.startup)
 
-from o3drbf.constraints.core import Constraints  # noqa: E402
-from o3drbf.extract import extract_mesh
-from o3drbf.options import DEFAULTS, Options
-from o3drbf.pipeline import (
-    Reconstruction,
-    Report,
-    build_constraints,
-    check_given_normals,
-    choose_parameters,
-    colour,
-    ensure_normals,
-    estimate_normals,
-    mesh_surface,
-    fit,
-    fit_surface,
-    mesh_confidence,
-    reconstruct,
-    register_scans,
-    remove_outliers,
-)
-from o3drbf.pointset import PointSet, read_input
-from o3drbf.prep.normalize import Normalization
-from o3drbf.rbf.kernels import KERNELS, Gaussian, Kernel, MultiOrder, ThinPlate, make_kernel, register_kernel
-from o3drbf.solvers import ConvergenceWarning, Solution, solve
-from o3drbf.surface import ImplicitSurface
+#: Where each public name lives: imported on first use (PEP 562), so ``import o3drbf`` and
+#: ``o3drbf --help`` do not load SciPy, Numba and Open3D until something needs them.
+_PUBLIC = {
+    "o3drbf.constraints.core": ("Constraints",),
+    "o3drbf.extract": ("extract_mesh",),
+    "o3drbf.options": ("DEFAULTS", "Options"),
+    "o3drbf.pipeline": ("Reconstruction", "Report", "build_constraints", "check_given_normals", "choose_parameters", "colour",
+                        "ensure_normals", "estimate_normals", "mesh_surface", "fit", "fit_surface", "mesh_confidence", "reconstruct",
+                        "register_scans", "remove_outliers"),
+    "o3drbf.pointset": ("PointSet", "read_input"),
+    "o3drbf.prep.normalize": ("Normalization",),
+    "o3drbf.rbf.kernels": ("KERNELS", "Gaussian", "Kernel", "MultiOrder", "ThinPlate", "make_kernel", "register_kernel"),
+    "o3drbf.solvers": ("ConvergenceWarning", "Solution", "solve"),
+    "o3drbf.surface": ("ImplicitSurface",),
+}
+_HOME = {name: module for module, names in _PUBLIC.items() for name in names}
+
+
+def __getattr__(name: str):
+    module = _HOME.get(name)
+    if module is None:
+        raise AttributeError(f"module 'o3drbf' has no attribute {name!r}")
+    import importlib
+
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value  # the next access is a plain attribute
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_HOME))
+
 
 __version__ = "0.2.0"
 

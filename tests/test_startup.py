@@ -89,3 +89,18 @@ def test_set_up_warm_up_leaves_nothing_to_compile_on_a_first_run(tmp_path):
     assert run.returncode == 0, run.stderr[-2000:]
     compiled = run.stderr.rsplit("COMPILED", 1)[1].split()
     assert compiled == [], f"compiled on the first run after set-up: {compiled}"
+
+
+def test_import_o3drbf_is_light_and_every_public_name_resolves():
+    out = _python(
+        "import sys, o3drbf\n"
+        "print(*(m in sys.modules for m in ('scipy', 'numba', 'open3d')))\n"
+        "missing = [n for n in o3drbf.__all__ if getattr(o3drbf, n, None) is None]\n"
+        "print(len(o3drbf.__all__), missing, set(o3drbf.__all__) <= set(dir(o3drbf)))\n"
+        "from o3drbf import reconstruct, MultiOrder\n"
+        "print(reconstruct.__module__.startswith('o3drbf.pipeline'), MultiOrder is o3drbf.MultiOrder)\n"
+    )
+    lines = out.splitlines()
+    assert lines[0].split() == ["False", "False", "False"], out
+    assert lines[1].endswith("[] True") and int(lines[1].split()[0]) > 20, out
+    assert lines[2].split() == ["True", "True"], out
