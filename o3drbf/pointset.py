@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-import o3drbf.cameras.model  # noqa: F401  (registers the files camera inputs refer to, for output checks)
+import o3drbf.cameras.formats  # noqa: F401  (registers the files camera inputs refer to, for output checks)
 from o3drbf.io.lidar import LAS_FORMATS
 from o3drbf.validation import as_points, as_vectors
 

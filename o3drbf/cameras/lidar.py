@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from o3drbf.cameras.model import Camera, CameraSet, _unit_quaternion, quaternion_to_matrix
+from o3drbf.cameras.model import Camera, CameraSet, quaternion_to_matrix, unit_quaternion
 from o3drbf.io.lidar import CHUNK_POINTS, e57_chunks, e57_scans
 
 __all__ = ["load_e57", "scan_camera"]
@@ -51,7 +51,7 @@ def scan_camera(path, scan) -> Camera:
                          "fix the pose or remove the scan (nothing was written)")
     try:
         w, x, y, z = q
-        R = quaternion_to_matrix(*_unit_quaternion([x, y, z, w]))
+        R = quaternion_to_matrix(*unit_quaternion([x, y, z, w]))
     except ValueError as exc:
         raise ValueError(f"{where}: {exc}") from None
     return Camera.from_pose(R, t, name=scan.name)
