@@ -155,10 +155,10 @@ def cloud(tmp_path_factory):
 def _refused(cloud, capsys, monkeypatch, machine, available, extra=()):
     """Run the command line on a fake machine; the fit must never start."""
     import o3drbf.options
-    import o3drbf.pipeline
+    import o3drbf.pipeline.run  # where reconstruct looks its stages up
 
     monkeypatch.setattr(o3drbf.options, "check_untiled_fits", lambda *a, **k: None)  # the reading side is not the question
-    monkeypatch.setattr(o3drbf.pipeline, "fit_surface", lambda *a, **k: pytest.fail("the fit started"))
+    monkeypatch.setattr(o3drbf.pipeline.run, "fit_surface", lambda *a, **k: pytest.fail("the fit started"))
     machine(available)
     t0 = time.perf_counter()
     code = main(["reconstruct", str(cloud / "in.ply"), "-o", str(cloud / "o.ply"), "--solver", "fast", "--resolution", "24", "-q",
@@ -222,12 +222,12 @@ def test_cli_refuses_a_large_fit_right_after_reading(tmp_path, capsys, monkeypat
     """Every point as a constraint (66,000 of them) on a machine with 300 MB: refused by the early
     estimate, before outliers, normals or constraints are computed, in seconds."""
     import o3drbf.options
-    import o3drbf.pipeline
+    import o3drbf.pipeline.run  # where reconstruct looks its stages up
 
     p, n = Sphere(1.0).sample(60000, seed=5)
     write_points(tmp_path / "big.ply", p, n)
     monkeypatch.setattr(o3drbf.options, "check_untiled_fits", lambda *a, **k: None)
-    monkeypatch.setattr(o3drbf.pipeline, "remove_outliers", lambda *a, **k: pytest.fail("a costly stage started"))
+    monkeypatch.setattr(o3drbf.pipeline.run, "remove_outliers", lambda *a, **k: pytest.fail("a costly stage started"))
     machine(300 * 2**20)
     t0 = time.perf_counter()
     code = main(["reconstruct", str(tmp_path / "big.ply"), "-o", str(tmp_path / "o.ply"), "--all-points", "-q"])

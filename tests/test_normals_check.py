@@ -84,9 +84,9 @@ def test_reconstruct_repairs_wrong_normals(torus_normals, case):
 
 def test_correct_normals_give_the_same_mesh_bit_for_bit(torus_normals, monkeypatch):
     p, n, good = torus_normals
-    import o3drbf.pipeline as pipeline
+    import o3drbf.pipeline.run as run  # where reconstruct looks its stages up
 
-    monkeypatch.setattr(pipeline, "check_given_normals", lambda data, seed=0: (data, None))
+    monkeypatch.setattr(run, "check_given_normals", lambda data, seed=0: (data, None))
     unchecked = o3drbf.reconstruct(p, n, **SIZES)
     np.testing.assert_array_equal(np.asarray(unchecked.mesh.vertices), np.asarray(good.mesh.vertices))
     np.testing.assert_array_equal(np.asarray(unchecked.mesh.triangles), np.asarray(good.mesh.triangles))

@@ -1,0 +1,254 @@
+"""Fit: the implicit function solved for, robustly reweighted; the memory a fast fit needs checked before it starts."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from o3drbf.constraints.core import Constraints
+from o3drbf.options import AUTO_SIZES, PAPER_VALUES, ExtractOptions, FitOptions, Options, auto_resolution, auto_surface_count
+from o3drbf.pipeline.records import ConstraintSet, Parameters
+from o3drbf.prep.normalize import Normalization
+from o3drbf.rbf.kernels import Kernel, MultiOrder
+from o3drbf.solvers import FAST_EVALUATION_MIN, Refitter, Solution, solve
+from o3drbf.surface import ImplicitSurface
+
+__all__ = ['fit', 'surface_of', 'check_fit_memory', 'EARLY_CHECK_MIN', 'EARLY_CHECK_SLACK', 'early_fit_check', 'fit_surface']
+
+log = logging.getLogger("o3drbf")
+
+
+def fit(constraints: Constraints, kernel: Kernel, normalization: Normalization, solver: str = "auto", progress: bool = False,
+        **solve_options) -> tuple[ImplicitSurface, Solution]:
+    """Fit an implicit surface to constraints given in the normalized box.
+
+    Parameters
+    ----------
+    constraints : Constraints
+        Points, target values and smoothing, in the box.
+    kernel : Kernel
+    normalization : Normalization
+        Data <-> box, kept by the surface.
+    solver : {"auto", "dense", "iterative", "fast"}
+    progress : bool
+    **solve_options
+        Passed to :func:`o3drbf.solvers.solve`.
+
+    Returns
+    -------
+    ImplicitSurface, Solution
+    """
+    sol = solve(kernel, constraints.points, constraints.values, constraints.smoothing, method=solver, progress=progress, **solve_options)
+    return surface_of(sol, constraints.points, kernel, normalization), sol
+
+
+def surface_of(sol: Solution, centres, kernel: Kernel, normalization: Normalization) -> ImplicitSurface:
+    """The implicit surface of a solution at its centres (box units); fast-solved large ones evaluate by fast sums."""
+    surf = ImplicitSurface(kernel, centres, sol.weights, sol.poly, normalization)
+    if sol.method == "fast" and len(centres) >= FAST_EVALUATION_MIN:
+        from o3drbf.solvers.fast import make_evaluator
+
+        surf.evaluator = make_evaluator(kernel, centres, sol.weights)
+    return surf
+
+
+def check_fit_memory(cset: ConstraintSet, params: Parameters, options: FitOptions = FitOptions(),
+                     extract: ExtractOptions | None = None) -> dict | None:
+    """Refuse, before the fit starts, a fast fit (and its meshing) that would not fit in memory.
+
+    The need is :func:`o3drbf.solvers.fast.memory_plan`'s for these
+    centres (products, preconditioner, Krylov basis, then the evaluator and
+    marching cubes at the extraction's resolution); the limit 80 % of the
+    memory available now.  Dense solves are checked by the solver itself
+    (also up front).
+
+    Parameters
+    ----------
+    cset : ConstraintSet
+    params : Parameters
+    options : FitOptions
+    extract : ExtractOptions, optional
+        The meshing to plan for (None: no mesh).
+
+    Returns
+    -------
+    dict or None
+        The plan (None when the solve is not fast).
+
+    Raises
+    ------
+    MemoryRefusal
+        With ``cli_hint`` naming a ``--surface-count`` that would fit (when
+        one would) and ``--tiles auto``.
+    """
+    from o3drbf.options import extraction_memory
+    from o3drbf.rbf.sums import polynomial_basis
+    from o3drbf.solvers import MemoryRefusal, choose_method, fast
+
+    pts = cset.constraints.points
+    n = len(pts)
+    m = polynomial_basis(pts[:1], params.kernel.polynomial_degree).shape[1]
+    method = options.solver if options.solver != "auto" else choose_method(n + m)[0]
+    if method != "fast" or not params.kernel.positive_definite:
+        return None
+    extraction, box = 0, None
+    if extract is not None:
+        res = extract.resolution if extract.resolution != "auto" else auto_resolution(cset.spacing)
+        extraction = extraction_memory(int(res)) if extract.voxel_size is None else 0
+        if cset.bounds is not None:
+            b = cset.normalization.forward(np.asarray(cset.bounds, dtype=float))
+            box = np.stack([b.min(axis=0), b.max(axis=0)])
+    try:
+        return fast.check_memory(n, eps=fast.product_tolerance(1e-6), kernel=params.kernel, centres=pts,
+                                 evaluation=extract is not None and n >= FAST_EVALUATION_MIN, box=box, extraction_bytes=extraction)
+    except MemoryRefusal as exc:
+        surface = cset.constraints.counts()["surface"]
+        hints = []
+        if exc.fraction:
+            count = int(exc.fraction * surface)
+            digits = max(len(str(count)) - 2, 0)
+            hints.append(f"--surface-count {count // 10**digits * 10**digits}")
+        hints.append("--tiles auto")
+        exc.cli_hint = "pass " + " or ".join(hints)
+        exc.what = f"a fast fit of {n:,} constraints ({surface:,} surface)" + (" and its mesh" if extract is not None else "")
+        exc.args = (exc.message(),)
+        raise
+
+
+#: From this many expected constraints on, :func:`early_fit_check` estimates the fit's memory right
+#: after reading (below it the stages before the fit take seconds anyway).
+EARLY_CHECK_MIN = 50_000
+#: :func:`early_fit_check` refuses only when its estimate exceeds the limit by this factor (it works
+#: on a random subset of the points, not the constraints; :func:`check_fit_memory` decides the rest).
+EARLY_CHECK_SLACK = 1.25
+
+
+def early_fit_check(points, options: Options, extract: bool = True, seed: int = 0) -> None:
+    """Refuse, seconds after reading, a fit that clearly would not fit in memory.
+
+    The constraint count is the one the options will give (``surface_count``
+    or ``"auto"`` or every point, plus exterior and sphere constraints); the
+    memory is :func:`o3drbf.solvers.fast.memory_plan`'s for a seeded random
+    subset of the points of that size, in the normalized box, with the
+    multi-order kernel of the paper's values.  It refuses only above
+    ``EARLY_CHECK_SLACK`` times the limit and only from ``EARLY_CHECK_MIN``
+    constraints, for a fast solve of a multi-order kernel; the exact check
+    (:func:`check_fit_memory`) comes before the fit.
+
+    Raises
+    ------
+    MemoryRefusal
+        With ``cli_hint`` naming a ``--surface-count`` that would fit (when
+        one would) and ``--tiles auto``.
+    """
+    from o3drbf.solvers import MemoryRefusal, fast
+    from o3drbf.solvers.base import memory_limit_or_default
+
+    c, p = options.constraints, options.parameters
+    n_points = len(points)
+    if c.surface_radius is not None or options.fit.solver == "dense":
+        return
+    kernel = p.kernel if isinstance(p.kernel, Kernel) else None
+    if kernel is None and str(p.kernel) != "multiorder":
+        return
+    if kernel is not None and not isinstance(kernel, MultiOrder):
+        return
+    surface = n_points if c.surface_count is None else (
+        auto_surface_count(n_points) if c.surface_count == "auto" else min(int(c.surface_count), n_points))
+    total = int(round(surface * (1 + c.exterior_ratio))) + int(c.sphere_count)
+    if total < EARLY_CHECK_MIN:
+        return
+    norm = Normalization.from_points(points)
+    rng = np.random.default_rng(seed)
+    centres = norm.forward(np.asarray(points, dtype=float)[np.sort(rng.choice(n_points, min(total, n_points), replace=False))])
+    if total > len(centres):  # exterior constraints beside the surface ones
+        extra = centres[rng.choice(len(centres), total - len(centres))] + rng.normal(scale=c.exterior_offset, size=(total - len(centres), 3))
+        centres = np.vstack([centres, extra])
+    kernel = kernel or MultiOrder(PAPER_VALUES["delta"], PAPER_VALUES["tau"])
+    limit = memory_limit_or_default()
+    extraction = 0
+    if extract and options.extract.voxel_size is None:
+        from o3drbf.options import extraction_memory
+
+        res = options.extract.resolution
+        extraction = extraction_memory(AUTO_SIZES["max_resolution"] if res == "auto" else int(res))
+    try:
+        fast.check_memory(total, eps=fast.product_tolerance(1e-6), memory_limit=int(EARLY_CHECK_SLACK * limit), kernel=kernel,
+                          centres=centres, evaluation=extract, extraction_bytes=extraction)
+    except MemoryRefusal as exc:
+        hints = []
+        fraction = fast.fitting_fraction(kernel, centres, limit, eps=fast.product_tolerance(1e-6), evaluation=extract,
+                                         extraction_bytes=extraction, limit=limit)
+        if fraction:
+            count = int(fraction * surface)
+            digits = max(len(str(count)) - 2, 0)
+            hints.append(f"--surface-count {count // 10**digits * 10**digits}")
+        hints.append("--tiles auto")
+        raise MemoryRefusal(f"a fast fit of about {total:,} constraints ({surface:,} surface)" + (" and its mesh" if extract else ""),
+                            exc.need, limit, fraction=fraction, cli_hint="pass " + " or ".join(hints)) from None
+
+
+def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = FitOptions(), *, progress: bool = False,
+                checked: bool = False):
+    """Solve for the implicit function; robustly reweighted by default.
+
+    Parameters
+    ----------
+    cset : ConstraintSet
+    params : Parameters
+    options : FitOptions
+    progress : bool
+    checked : bool
+        :func:`check_fit_memory` has passed: the solver does not check again.
+
+    Returns
+    -------
+    surface : ImplicitSurface
+    solution : Solution
+    robust : dict or None
+        Rounds, down-weighted and dropped constraints, scale, seconds, and
+        ``constraints`` (those of the final fit); None when not robust.
+    """
+    options.validate()
+    c = cset.constraints
+    constraints = Constraints(c.points, c.values, params.smoothing, c.kind)
+    # One factorization for the first fit and every robust refit (Woodbury updates of the dense one).
+    session = Refitter(params.kernel, constraints.points, constraints.values, constraints.smoothing, method=options.solver,
+                       checked=checked, progress=progress)
+
+    def refit(smoothing=None):
+        keep, solution = session.solve(smoothing)
+        return surface_of(solution, constraints.points[keep], params.kernel, cset.normalization), solution
+
+    surface, sol = refit()
+    robust = None
+    if options.robust:
+        from o3drbf.constraints.robust import robust_reweight
+
+        # The residual scale never falls below half a constraint spacing, so
+        # clean data are not reweighted (no refit when no residual reaches
+        # Tukey's c times the scale).
+        scale = max(params.noise, 0.5 * cset.spacing) if np.isfinite(cset.spacing) else params.noise
+        surface, sol, rep = robust_reweight(
+            lambda c: fit(c, params.kernel, cset.normalization, solver=options.solver, progress=progress),
+            constraints, scale, first=(surface, sol), refit=refit,
+        )
+        robust = {"rounds": int(rep.rounds), "downweighted": int(rep.downweighted), "dropped": int(rep.dropped),
+                  "scale": float(rep.scale), "seconds": float(rep.seconds), "constraints": rep.constraints}
+        if rep.downweighted or rep.dropped:
+            log.info("robust fit: %d round(s), %d constraints down-weighted, %d dropped (scale %.3g box units)",
+                     rep.rounds, rep.downweighted, rep.dropped, rep.scale)
+    surface.metadata = {
+        "basis": params.kernel.to_dict(),
+        "lambda_surface": params.lambda_surface,
+        "lambda_exterior": params.lambda_exterior,
+        "exterior_offset": cset.exterior_offset,
+        "counts": cset.constraints.counts(),
+        "mean_spacing": cset.spacing,
+        "bounds": None if cset.bounds is None else cset.bounds.tolist(),
+        "normals_estimated": cset.normals_estimated,
+        "parameter_source": params.source,
+    }
+    log.info("solved %d constraints (%s) in %.2f s, relative residual %.1e", len(constraints), sol.method, sol.seconds, sol.residual)
+    return surface, sol, robust
