@@ -1,8 +1,9 @@
 """The import contracts of pyproject.toml ([tool.importlinter]) hold.
 
 Layers (each package imports only from the layers below it), the
-independence of the fitting/meshing/picture stages, and that only tests,
-samples and benchmarks import ``o3drbf.synthetic``.
+independence of the fitting/meshing/picture stages, the pipeline's modules
+in the data's order, camera readers independent of each other, and that
+only tests, samples and benchmarks import ``o3drbf.synthetic``.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ def test_import_contracts_are_kept():
     out = _run(_lint_imports())
     assert out.returncode == 0, out.stdout + out.stderr
     assert "0 broken" in out.stdout
-    for name in ("Layers", "independent stages", "o3drbf.synthetic"):
+    for name in ("Layers", "independent stages", "o3drbf.synthetic", "pipeline's stages", "Camera formats"):
         assert name in out.stdout
 
 
