@@ -35,8 +35,8 @@ def auto_resolution(spacing_box: float) -> int:
 
 #: From this many centres on, a surface without its own evaluator is meshed with
 #: the grid (particle-mesh) sum of o3drbf.solvers.fast rather than the direct
-#: tabulated sum (3,064 centres, 300,000 targets: 1.2-1.8 s vs 10-13 s, loaded
-#: machine).
+#: tabulated sum, which is the slower of the two from here on (docs/data/design-measurements.md,
+#: "Meshing with grid sums").
 GRID_EVALUATION_MIN = 1000
 #: Relative tolerance of the grid sums used for meshing, a fraction of max |f|.
 #: A value error e moves a vertex by e / |grad f| (a tiny fraction of a cell
@@ -235,7 +235,7 @@ def _candidate_cells(d, margin: float = 0.5):
     times their own spread (a local Lipschitz test for surfaces between the corners)."""
     corners = [d[a : a + d.shape[0] - 1, b : b + d.shape[1] - 1, c : c + d.shape[2] - 1] for a in (0, 1) for b in (0, 1) for c in (0, 1)]
     # In place, one corner at a time: reducing the list would stack 8 copies of
-    # the grid (2-3 GB at 256^3).
+    # the grid.
     mn = corners[0].copy()
     mx = corners[0].copy()
     absmin = np.abs(corners[0])
@@ -257,7 +257,7 @@ def _corners_to_evaluate(vals, exact, changed, level: float, margin: float):
     ncell = tuple(n - 1 for n in vals.shape)
     offsets = [(a, b, c) for a in (0, 1) for b in (0, 1) for c in (0, 1)]
     p = np.stack(changed, axis=1)
-    touched = np.zeros(ncell, dtype=bool)  # boolean marks, not np.unique: a few ms per sweep, not seconds
+    touched = np.zeros(ncell, dtype=bool)  # boolean marks, not np.unique: no sort of the candidates at each sweep
     for o in offsets:
         c = p - o
         c = c[((c >= 0) & (c < ncell)).all(axis=1)]

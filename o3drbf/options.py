@@ -100,26 +100,14 @@ DEFAULTS: dict = {
 }
 
 #: ``surface_count="auto"`` and ``resolution="auto"``: sparse scans keep the
-#: paper's ~3,000 constraints (and the dense solve), dense scans get detail.
-#: Measured on the Stanford bunny's ten raw scans (362k points): 3,000
-#: constraints at 96-128 cells give Chamfer L1 0.24 mm to bun_zipper; 30,000
-#: at 256 cells give 0.080 mm (Open3D Poisson about 0.07 mm), closed, one
-#: piece, genus 0, 61 s.  One constraint per 6 points rather than 12
-#: (robustness study, 6-view scans of 33k points, no noise): double torus
-#: Chamfer 0.0008 -> 0.0004, cube 0.0009 -> 0.0006, 17 s either way.
-#: One per 3 points rather than 6, clean scans first (6-view scans, no
-#: noise: double torus 0.00043 -> 0.00022, thin plate 0.00074 -> 0.00038,
-#: bracket 0.00059 -> 0.00037; Open3D Poisson depth 8: 0.00025, 0.00025,
-#: 0.0008), then noisy ones too (denoised constraints; the settings sweep's
-#: "2x constraints" on the 18 noisy cells without outliers: Chamfer 0.72-1.03x,
-#: median 0.92x; 3-view cube, 2 % outliers, noise 0.5 %: 0.0069 -> 0.0050;
-#: about 1.5-2.5x the time, with the robust refits as Woodbury updates).
-#: Noisy scans keep that rate only up to 10,000 constraints (then points / 6,
-#: as before): noise makes robust refits, and above the dense solve's range
-#: (``o3drbf.solvers.DENSE_AUTO_MAX``) each refit is a whole fast solve
-#: (6-view torus stack, 33k points, noise 1 %: 5.6k constraints Chamfer
-#: 0.00506; 10.0k, dense, no refit needed: 0.00474; 11.3k, fast, 4 refits:
-#: 0.00465 at 4-6x the fit time).
+#: paper's ~3,000 constraints (and the dense solve), dense scans get detail:
+#: one surface constraint per ``points_per_constraint`` points between
+#: ``min_constraints`` and ``max_constraints``.  Noisy (denoised) scans keep
+#: that rate only up to ``noisy_full_rate_max`` constraints, then one per
+#: ``noisy_points_per_constraint`` points: noise makes robust refits, and
+#: above the dense solve's range (``o3drbf.solvers.DENSE_AUTO_MAX``) each
+#: refit is a whole fast solve.  Chosen on the Stanford bunny's scans and the
+#: robustness study; the measurements are in docs/data/design-measurements.md ("Automatic sizes").
 AUTO_SIZES = {
     "points_per_constraint": 3,  # surface constraints = points / 3 ...
     "min_constraints": 3000,  # ... at least this many (or every point) ...
@@ -133,15 +121,13 @@ AUTO_SIZES = {
 #: ``denoise="auto"`` moves the surface constraints onto local quadric fits
 #: when the points' estimated noise exceeds this many constraint spacings
 #: (clean scans stay as they are: their sharp edges are not rounded).
-#: Measured (6-view torus stack, noise 1 % of the diagonal): Chamfer L1
-#: 0.0125 -> 0.0053 (Open3D Poisson 0.0077).
+#: Measurements: docs/data/design-measurements.md ("Denoising threshold").
 DENOISE_MIN_NOISE = 0.05
 
 
 #: Mesh pieces smaller than this many surface-constraint spacings across are
 #: removed after marching cubes (:func:`o3drbf.mesh.metrics.drop_specks`):
-#: the zero crossing around one stray constraint (three stacked tori with 2 %
-#: uniform outliers and random normals: an 8-triangle fourth piece).
+#: the zero crossing around one stray constraint (docs/data/design-measurements.md, "Specks").
 SPECK_SPACINGS = 2.0
 
 
@@ -169,9 +155,9 @@ def extraction_memory(resolution: int) -> int:
 
 #: Memory of the untiled path (read, outlier rules, normals, kd-trees, noise
 #: estimate, subsample, fit, marching cubes at 64 cells) per input point and
-#: fixed.  Measured: peak RSS of ``reconstruct(surface_count=3000,
-#: resolution=64)`` on a noisy torus, 494 MB at 100k points and 1,096 MB at
-#: 400k (2.0 kB per point; load 6 on 2 cores), plus ~10 % for reading a file.
+#: fixed, from the peak resident memory of ``reconstruct(surface_count=3000,
+#: resolution=64)`` on a noisy torus at two sizes, with a margin for reading a
+#: file (docs/data/design-measurements.md, "Untiled memory").
 UNTILED_MEMORY = {"bytes_per_point": 2200, "fixed_bytes": 512 * 2**20, "usable_fraction": 0.8}
 
 
@@ -291,16 +277,16 @@ TILE_DEFAULTS = {
 }
 
 #: Per-vertex confidence (:func:`o3drbf.mesh.confidence.vertex_confidence`):
-#: constraints per local Gaussian-process neighbourhood (measured on 3,000
-#: constraints on a sphere: 32 gives the exact posterior variance within
-#: 0.04 % at the median, 8 % at worst; 64 within 0.14 % at worst, 3x slower),
-#: and the distance, in mean spacings, at which the distance factor is exp(-1/2).
+#: constraints per local Gaussian-process neighbourhood (the posterior
+#: variance of the neighbourhood against the exact one: docs/data/design-measurements.md,
+#: "Confidence neighbourhoods"), and the distance, in mean spacings, at which
+#: the distance factor is exp(-1/2).
 CONFIDENCE_DEFAULTS = {"neighbours": 32, "distance_scale": 2.0}
 
 #: Kernel parameter values accepted (box units), with what is usual.  Outside
-#: them the arithmetic or the fit breaks down on any data (measured on a
-#: sphere sample: tau 1e-10 overflows the kernel's decay rates, delta 1e-4
-#: gives a mesh off by most of the radius, delta 200 leaves no zero crossing).
+#: them the arithmetic or the fit breaks down on any data (the kernel's decay
+#: rates overflow, the mesh misses the data, or f has no zero crossing:
+#: docs/data/design-measurements.md, "Parameter ranges").
 PARAMETER_RANGES = {
     "delta": (0.1, 200.0, "the paper uses 5 to 40"),
     "tau": (1e-6, 10.0, "the paper uses 0.005 to 0.025"),
@@ -468,11 +454,10 @@ class ParameterOptions:
         Smoothing of exterior and sphere constraints relative to phi(0) of
         the kernel used (as the automatic lambda_surface is), >= 0: the
         constraints keep the same weight whatever delta and tau are.
-        Measured on a torus with normals and on 3-view range scans (1,500
-        constraints, automatic parameters): 50 phi(0) gives mean |SDF| 0.0020
-        and 0.0027; exterior constraints that pull f to -0.5 (0.1 phi(0))
-        give 0.0028 and 0.0105, so they are kept weak: they orient the
-        function, the surface constraints place it.
+        They are kept weak (50 phi(0)): they orient the function, the
+        surface constraints place it; exterior constraints that pull f all
+        the way to their target distort the surface (docs/data/design-measurements.md,
+        "Exterior smoothing").
     """
 
     kernel: object = DEFAULTS["kernel"]

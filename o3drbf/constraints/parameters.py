@@ -36,40 +36,16 @@ for delta 10, tau 0.01).  Here the rule is made explicit:
   of a sparse cloud are as wide as its features, so the local fits measure
   the shape, not the noise.
 
-Calibration (``Torus(0.7, 0.25)``, 15,000 samples with true normals and
-noise along them, 3,000 or 1,000 constraints, resolution 64; Chamfer L1 to
-the analytic torus; the robustness study then evaluates on other shapes):
-
-- lambda matters most.  Best ``lambda / phi(0)``: 0.03 without noise
-  (0.1 costs +12 %, 1.0 costs 3x), 0.1 at sigma 0.31 h, 0.3 (of 0.03, 0.1,
-  0.3, 1, 3) at sigma 0.53 h, where 0.03 and 0.1 leave noise bubbles (3x
-  the error).  Too little smoothing costs more than too much, so the noise
-  term is set a little high: 0.03 + 1.5 (sigma/h)^2 gives 0.03, 0.17, 0.45.
-- delta matters less: without noise 2.5..6 are within 2 % and delta 10 is
-  5-17 % worse; with noise the smallest delta tried (2.5) is best (0.0087
-  vs 0.0122 at delta 10, sigma 0.53 h).  ``0.12 / h`` gives 3.0 at the
-  paper's spacing 0.04 and falls as noise spreads the constraints (h grows
-  from 0.040 to 0.054 at sigma 1 % of the diagonal).  The 1/h scaling
-  itself is the paper's density argument, not a fit: at h 0.073 (1,000
-  constraints) delta 2.5..6 are again within 4 %.
-- tau: the paper's 0.01 corresponds to h / 4 at h 0.04; it changes little.
-
-Recalibrated on the robustness study's scans (``benchmarks/paper/robustness.py``:
-range scans of six solids, raw points, denoised constraints; Chamfer L1 and
-F-score at 1 % against the true mesh; one scan per cell, seed 0):
-
-- the delta floor of 8 (the rule alone gave 2-5): 3-view scans (undersides
-  unseen) of the cube, 2 % outliers, noise 0.5 %: Chamfer 0.0134 -> 0.0069,
-  F-score 0.842 -> 0.907 (Poisson trimmed 0.912); bracket, noise 1 %:
-  0.0080 -> 0.0067, F 0.856 -> 0.913 (0.865).  Costs on shapes the data
-  covers: 3-view double torus, noise 0.5 %, 0.0045 -> 0.0063 (Poisson 0.024);
-  6-view cube, noise 1 %, 5 % outliers, 0.0022 -> 0.0025.  (delta 5: cube
-  F 0.882, below Poisson's 0.906; delta 14: cube Chamfer 0.013.)
-- ``LAMBDA_BASE`` 0.03 -> 0.003 on clean scans: 6-view (complete) cube
-  0.00055 -> 0.00029, bracket 0.00105 -> 0.00056, double torus 0.00078 ->
-  0.00040 (Open3D Poisson depth 8: 0.0048, 0.0008, 0.00025); on denoised
-  constraints the floor 0.03 stays (0.003 there: 6-view thin plate, noise 1 %,
-  0.0028 -> 0.0033).
+Calibration: the constants were fitted by a sweep on a noisy torus
+(Chamfer L1 to the analytic shape) and recalibrated on the robustness
+study's range scans (``benchmarks/paper/robustness.py``).  What the sweep
+showed: lambda matters most, and too little smoothing costs more than too
+much, so the noise term is set a little high; delta matters less, and the
+smallest decay length that still spans the neighbours is best under noise;
+tau changes little.  The delta floor of 8 closes unseen undersides flat;
+``LAMBDA_BASE`` is small on clean scans, ``LAMBDA_BASE_DENOISED`` larger on
+denoised constraints.  The measurements are in ``docs/data/design-measurements.md``
+("Automatic parameters").
 """
 
 from __future__ import annotations
@@ -94,7 +70,7 @@ __all__ = [
 #: The paper's fixed values (normalized box): what ``--no-auto`` uses.
 PAPER_PARAMETERS = {"delta": 10.0, "tau": 0.01, "lambda_surface": 1e-3}
 
-# Rule constants (fitted by the calibration sweep, see the module notes).
+# Rule constants (fitted by the calibration sweep, see the module notes; measurements in docs/data/design-measurements.md).
 DELTA_SPACING = 0.12
 TAU_SPACING = 0.25
 LAMBDA_BASE = 0.003

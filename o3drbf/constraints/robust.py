@@ -17,10 +17,9 @@ The flat core matters: a larger lambda is more smoothing, so down-weighting
 every constraint a little (the plain biweight) would shrink the whole
 surface, raise every residual and never settle.  For the same reason the
 default Huber threshold is k = 3, not the textbook 1.345: with 1.345 the
-~18% of inliers beyond k s were down-weighted, the fit smoothed where they
-sat, their residuals grew and the dropped set kept growing (measured on a
-sphere: 21 -> 28 -> 31 dropped, error 1.4x the plain fit's;
-docs/robustness-notes.md).
+inliers beyond k s (a sizeable fraction of a Gaussian sample) are
+down-weighted, the fit smooths where they sit, their residuals grow and the
+dropped set keeps growing (docs/data/design-measurements.md, "Robust fitting").
 
 Then ``lambda_i = lambda_0,i / max(u_i, MIN_WEIGHT)`` and the constraints are
 refitted.  Nothing is refitted when no residual of the first fit reaches
@@ -31,8 +30,8 @@ previous round of the same kind, or after ``rounds`` refits.  Exterior,
 interior and sphere constraints keep their lambda.
 
 A refit changes lambda of a few constraints, and the surface moves only
-near them (measured on noisy range scans: residual changes above 1 % of
-``k s`` lie within 5 constraint spacings of a changed constraint).  So after
+near them (on noisy range scans, within a few constraint spacings of a
+changed constraint: docs/data/design-measurements.md, "Robust fitting").  So after
 a refit the residuals are measured again only within ``local_radius``
 spacings of the constraints whose lambda changed; a seeded sample of the
 others is measured too (half of it the nearest beyond that radius, where

@@ -257,7 +257,7 @@ def _same(a: Path, b: Path) -> bool:
 
 
 #: Readers ``f(path) -> list[Path]`` of the files an input refers to (the
-#: scans of a .conf, the images of a calibration).  :mod:`o3drbf.cameras.model`,
+#: scans of a .conf, the images of a calibration).  :mod:`o3drbf.cameras.formats`,
 #: a layer above, registers its reader here when it is imported.
 REFERENCED_FILES: list = []
 

@@ -137,9 +137,8 @@ def triangle_components(triangles: np.ndarray, side_edge: np.ndarray | None = No
     """Connected pieces of a triangle list: triangles joined through shared edges.
 
     The same clusters as Open3D's ``cluster_connected_triangles``, found by
-    one sparse graph search (well under a second for 900k triangles, where
-    Open3D's takes about 6 s); pieces are numbered in the order of their
-    first triangle.
+    one sparse graph search (linear in the triangles); pieces are numbered
+    in the order of their first triangle.
 
     Parameters
     ----------

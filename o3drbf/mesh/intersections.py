@@ -1,8 +1,7 @@
 """Self-intersecting triangle pairs and watertightness, as Open3D defines them, fast.
 
 Open3D's ``TriangleMesh.get_self_intersecting_triangles()`` compares every
-pair of triangles (``O(F^2)``: about 6.5 s for 20,000 triangles), which is
-why :func:`o3drbf.mesh.metrics.mesh_report` could not afford it.  This module
+pair of triangles (``O(F^2)``), which is why :func:`o3drbf.mesh.metrics.mesh_report` could not afford it.  This module
 returns exactly the same pairs from a uniform grid over the triangles'
 bounding boxes, so the cost grows with ``F`` times the number of triangles
 near each triangle.
@@ -429,8 +428,8 @@ def self_intersecting_pairs(vertices: Any, triangles: Any) -> np.ndarray:
     intersection of the two boxes, so it is tested once.  Triangles
     covering more than 64 cells are tested against all triangles.  Time is
     about linear in ``F`` for meshes of roughly uniform triangles (a
-    marching-cubes mesh: about 2 s for 460k triangles on one loaded core),
-    quadratic in the worst case (many large overlapping triangles).
+    marching-cubes mesh), quadratic in the worst case (many large overlapping
+    triangles).
     """
     verts, tris = _check_arrays(vertices, triangles)
     if tris.shape[0] < 2:

@@ -467,7 +467,7 @@ def mesh_report(mesh: Any, self_intersections: bool = True) -> dict[str, Any]:
         Also count self-intersecting triangle pairs, the pairs Open3D's
         ``get_self_intersecting_triangles`` returns, found fast by
         :func:`o3drbf.mesh.intersections.self_intersecting_pairs` (about
-        2 s for 300k triangles).  ``False`` skips the count and leaves
+        linear in the triangles).  ``False`` skips the count and leaves
         ``watertight`` topological only.
 
     Returns

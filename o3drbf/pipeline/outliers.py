@@ -64,9 +64,8 @@ def _auto_outliers(data: PointSet, *, seed: int) -> tuple[PointSet, OutlierRepor
     than the tolerance, is removed).  Always: the isolated-point rule
     (:func:`o3drbf.prep.outliers.isolated_points`: tiny groups and points
     hovering off their neighbours' plane; it never compares group sizes, so
-    separate objects are kept).  Measured (docs/robustness-notes.md): 97-100 %
-    of free-space spurious returns and about 91 % of uniform outliers caught,
-    at most 0.05 % of genuine points removed.
+    separate objects are kept).  How many outliers it catches and genuine
+    points it removes: docs/data/design-measurements.md ("Outliers").
     """
     from o3drbf.prep.outliers import isolated_points
 

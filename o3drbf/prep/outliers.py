@@ -221,10 +221,10 @@ def statistical_outliers(points, nb_neighbors: int = 20, std_ratio: float = 2.0)
     return kept, report
 
 
-#: isolated_points defaults (tuned on stacked tori, cubes and range scans: no
-#: genuine loss above 0.05%).  The component radius must be well above the
-#: percolation radius of random surface samples: at 3 median spacings,
-#: 0.3-0.5% of noise-free random samples fall into components under 10.
+#: isolated_points defaults (tuned on stacked tori, cubes and range scans;
+#: docs/data/design-measurements.md, "Outliers").  The component radius must be well above the
+#: percolation radius of random surface samples: a few median spacings still
+#: leave some noise-free random samples in components under the minimum size.
 ISOLATED_NEIGHBOURS = 24
 ISOLATED_RADIUS_SPACINGS = 5.0
 ISOLATED_MIN_COMPONENT = 10

@@ -306,8 +306,8 @@ def refine_registration(points, point_camera, n_cameras: int | None = None, *, t
         if moved < 0.05 * spacing:
             break
         if rounds == 1 and _consistency(cur, cur_n, pairs, reach) > (1.0 - 0.5 * min_gain) * before:
-            # the first pass brings most of the gain (6-view cube misregistered by 0.5 %: 0.26 of 0.28;
-            # registered scans: under 0.01): nothing to win here, so no more passes
+            # the first pass brings most of the gain (docs/data/design-measurements.md, "Registration passes"):
+            # nothing to win here, so no more passes
             break
 
     # the gauge: the mean motion removed (the pose errors are taken to average out)

@@ -19,10 +19,9 @@ try:  # numba is a dependency, but the library still works (slower) without it
 
     if "NUMBA_THREADING_LAYER" not in os.environ:
         # Numba's own "workqueue" threads: with the OpenMP layer, the solve
-        # (OpenBLAS) and the sums both ran 2-3x slower next to Open3D's
-        # OpenMP runtime (measured: dense solve of 3,373 constraints 3.1 s ->
-        # 1.0 s, 128^3 extraction 13.6 s -> 7.3 s), and an old system TBB
-        # makes numba warn.  workqueue must not be entered from two Python
+        # (OpenBLAS) and the sums both slow down next to Open3D's OpenMP
+        # runtime (docs/data/design-measurements.md, "Numba's threading layer"), and an old
+        # system TBB makes numba warn.  workqueue must not be entered from two Python
         # threads at once: o3drbf calls it from one thread at a time.
         numba.config.THREADING_LAYER_PRIORITY = ["workqueue", "omp", "tbb"]
     HAVE_NUMBA = True

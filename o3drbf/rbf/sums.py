@@ -84,10 +84,9 @@ def kernel_sum(
         Use the compiled (Numba) loop when the kernel has one (no matrix is
         formed); ``False`` forces the NumPy reference path.
     table : o3drbf.rbf.compiled.KernelTable, optional
-        Evaluate the multi-order kernel from these tables instead (about
-        1e-9 relative in values, 1e-6 in gradients; 1.5x faster in the real
-        regime and 10-30x in the confluent and complex ones).  For meshing,
-        never for solving.
+        Evaluate the multi-order kernel from these tables instead (faster,
+        and accurate to the tables' tolerance rather than to rounding:
+        docs/data/design-measurements.md, "Tabulated kernel").  For meshing, never for solving.
 
     Returns
     -------

@@ -41,21 +41,16 @@ __all__ = ["Solution", "solve", "available_memory", "MemoryRefusal", "dense_memo
 METHODS = ("auto", "dense", "iterative", "fast")
 
 #: ``method="auto"`` solves densely up to this many constraints and uses the
-#: fast solver above.  Measured on the robustness study's scans (2 cores,
-#: nothing else running), the whole fit with its robust refits: 6-view
-#: bracket, no noise, 10.7k constraints, no refit: dense 12.0 s, fast 13.8 s;
-#: 3-view bracket, noise 1 %, 6.5k constraints, 4 refits: dense 8.0 s (the
-#: refits are Woodbury updates of one factorization, :class:`Refitter`),
-#: fast 35 s; 6-view pipe, noise 0.5 %, 11.1k constraints (10.1k surface),
-#: 4 refits: dense 16.0 s, fast 31.7 s.  It is also the largest dense solve
-#: run at all (``DENSE_MAX``).
+#: fast solver above: up to it the dense fit with its robust refits (Woodbury
+#: updates of one factorization, :class:`Refitter`) takes less time than the
+#: fast one on the robustness study's scans (docs/data/design-measurements.md, "Solver
+#: choice").  It is also the largest dense solve run at all (``DENSE_MAX``).
 DENSE_AUTO_MAX = 12_000
 
 log = logging.getLogger("o3drbf")
 
 #: Above this many centres a fast-solved surface is evaluated by fast sums too
-#: (below it the compiled direct sum is as fast: measured 14.1 s vs 14.4 s for
-#: 200,000 targets x 3,400 centres with fmm3dpy; the grid backend is faster).
+#: (below it the compiled direct sum is as fast; docs/data/design-measurements.md, "Solver choice").
 FAST_EVALUATION_MIN = 20_000
 
 

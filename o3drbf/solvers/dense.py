@@ -14,7 +14,7 @@ __all__ = ["solve_dense", "DenseFactor", "DENSE_MAX"]
 #: Largest dense solve o3drbf runs.  The OpenBLAS shipped with numpy/scipy
 #: wheels segfaults in a two-thread Cholesky of 16,000+ unknowns on this
 #: class of machine (exit 139, no message), and the fast solver is faster
-#: well before that (10k: 13 s vs 36 s).  Above it, method="dense" is refused.
+#: well before that (docs/data/design-measurements.md, "Solver choice").  Above it, method="dense" is refused.
 DENSE_MAX = 12_000
 #: Columns of the inverse a DenseFactor keeps for later refits (each N floats).
 MAX_KEPT_COLUMNS = 1024
