@@ -252,7 +252,7 @@ CARVE_DEFAULTS = {
 #: ``o3drbf photos``: the fit of a carved shell (dense and nearly noise-free,
 #: so fixed parameters; overrides of :data:`DEFAULTS`).  No denoising: the
 #: voxel lattice reads as noise (h / sqrt(12)) and moving the constraints
-#: off it lowered the temple's silhouette IoU below 0.9 in 6 of 16 views.
+#: off it loses the silhouettes (docs/data/design-measurements.md, "Photos").
 PHOTO_DEFAULTS = {"delta": 4.0, "tau": 0.01, "lambda_surface": 1e-4, "exterior_ratio": 0.5, "surface_count": 3000, "mesh_resolution": 128,
                   "denoise": False}
 

@@ -231,7 +231,7 @@ class Refitter:
     factorization is kept and every later smoothing that differs at no more
     than ``max_changed`` constraints is solved by the Woodbury identity
     (:class:`o3drbf.solvers.dense.DenseFactor`): a robust refit that
-    down-weights 6 of 4,700 constraints costs milliseconds, not a new
+    down-weights a few constraints costs a few triangular solves, not a new
     factorization.  When it is fast, the products are built once for all
     the centres and every refit starts FGMRES from the previous solution; a
     left-out constraint keeps its centre with the smoothing
