@@ -53,3 +53,13 @@ def test_an_upward_import_breaks_the_layers(tmp_path):
     out = _run(_lint_imports(), config)
     assert out.returncode != 0
     assert "is not allowed to import o3drbf.validation" in out.stdout
+
+
+def test_every_package_folder_is_installed():
+    # setuptools installs only the packages pyproject.toml lists: a new subpackage left out of the
+    # list imports in the checkout and fails in a wheel.
+    import tomllib
+
+    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    folders = {".".join(p.parent.relative_to(ROOT).parts) for p in (ROOT / "o3drbf").rglob("__init__.py")}
+    assert folders - listed == set(), f"add to [tool.setuptools] packages in pyproject.toml: {sorted(folders - listed)}"
