@@ -2,7 +2,7 @@
 
     python scripts/run_notebook.py docs/quickstart.ipynb --figure docs/images/quickstart.png
 
-Used by ``make figures`` (the README picture) and by tests/test_notebook.py.
+Used by ``make figures`` (the README picture) and by tests/project/test_notebook.py.
 A failing cell (an ``assert`` on the report, say) stops the run with exit
 status 1 and names the cell.  The notebook file itself is not changed: it is
 committed without outputs.

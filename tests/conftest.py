@@ -1,4 +1,9 @@
-"""Shared test set-up: paths, the shared-data marker, and small fixtures."""
+"""Shared test set-up: paths, the shared-data marker, small fixtures and helpers, the fast tier's slow marks.
+
+The tests mirror the package: ``tests/<subpackage>/test_<module>.py``
+(``tests/project/`` for checks of the whole repository); every test file's
+name is unique, so the marks below are keyed by file name.
+"""
 
 from __future__ import annotations
 
@@ -8,7 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-os.environ.setdefault("O3DRBF_NO_PROGRESS", "1")
+os.environ.setdefault("O3DRBF_NO_PROGRESS", "1")  # before o3drbf is imported
+from o3drbf.constraints.core import EXTERIOR, SPHERE, SURFACE, Constraints, bounding_sphere  # noqa: E402
+from o3drbf.rbf.kernels import make_kernel  # noqa: E402
+from o3drbf.synthetic.shapes import Sphere  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
@@ -26,6 +34,42 @@ def rng():
     return np.random.default_rng(12345)
 
 
+# -- shared by constraints/test_robust.py and solvers/test_refit.py ------------------------------------
+
+#: The robust-fit sphere (constraints/test_robust.py, solvers/test_refit.py): radius and samples (box units), and the kernel.
+ROBUST_R = 0.8
+ROBUST_N = 500
+ROBUST_KERNEL = make_kernel("multiorder", delta=10.0, tau=0.01)
+
+
+def sphere_constraints(outlier_fraction, noise=0.0, seed=0):
+    """Samples of a sphere of radius ROBUST_R (box units) plus gross outliers 15-40% of ROBUST_R off it, in or out (last rows)."""
+    pts, _ = Sphere(ROBUST_R).sample(ROBUST_N, noise=noise, seed=seed)
+    rng = np.random.default_rng(seed + 1)
+    k = int(round(outlier_fraction * ROBUST_N))
+    d = rng.normal(size=(k, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    out = d * (ROBUST_R * (1 + rng.choice([-1.0, 1.0], k) * rng.uniform(0.15, 0.4, k)))[:, None]
+    c = Constraints.concat(
+        Constraints.of_kind(np.vstack([pts, out]), SURFACE, 1e-3),
+        Constraints.of_kind(pts[::10] * (1 + 0.05 / ROBUST_R), EXTERIOR, 2.0),
+        Constraints.of_kind(bounding_sphere(pts, 64), SPHERE, 2.0),
+    )
+    return c, pts, k
+
+
+def radial_error(surface, directions):
+    """Mean |r - ROBUST_R| of the fitted zero set along rays from the centre (bisection; truth: the sphere)."""
+    d = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    lo, hi = np.full(len(d), 0.3 * ROBUST_R), np.full(len(d), 1.7 * ROBUST_R)
+    assert (surface.evaluate_box(d * lo[:, None]) > 0).all() and (surface.evaluate_box(d * hi[:, None]) < 0).all()
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        inside = surface.evaluate_box(d * mid[:, None]) > 0
+        lo, hi = np.where(inside, mid, lo), np.where(inside, hi, mid)
+    return float(np.abs(0.5 * (lo + hi) - ROBUST_R).mean())
+
+
 #: The fast tier (``make test-fast``: ``pytest -m "not slow"``) leaves out the
 #: tests marked ``slow``: whole modules that run end to end (real data, Dask
 #: clusters, subprocesses, builds, notebooks), and the tests that took more
@@ -38,11 +82,10 @@ SLOW_MODULES = {
     "test_tiles.py", "test_tiles_outofcore.py",
 }
 SLOW_TESTS = {
-    "test_startup.py": {"test_set_up_warm_up_leaves_nothing_to_compile_on_a_first_run"},
     "test_sparse.py": {"test_sparse_cloud_gives_one_closed_piece"},
     "test_fast_memory.py": {"test_cli_refuses_a_large_fit_right_after_reading", "test_looser_companions_never_take_a_finer_grid",
                             "test_fast_refusal_is_up_front_and_names_a_count_that_fits"},
-    "test_auto.py": {
+    "test_parameters.py": {
         "test_auto_beats_the_paper_values_on_a_noisy_torus", "test_cli_defaults_to_auto_and_no_auto_gives_the_paper_values",
         "test_explicit_values_win_and_stats_record_the_source"
     },
@@ -125,7 +168,7 @@ SLOW_TESTS = {
     "test_sources.py": {"test_voxel_shell_to_points_and_reconstruction"},
     "test_startup.py": {
         "test_importing_o3drbf_and_open3d_leaves_dash_and_plotly_unloaded_until_used", "test_open3d_imported_first_is_left_alone",
-        "test_report_json_has_the_summary_and_every_stage"
+        "test_report_json_has_the_summary_and_every_stage", "test_set_up_warm_up_leaves_nothing_to_compile_on_a_first_run"
     },
     "test_viewer.py": {
         "test_a_mesh_is_shown_as_it_is_coloured_by_a_field", "test_dense_points_leave_the_surface_visible",

@@ -9,7 +9,7 @@ import pytest
 
 from o3drbf.cameras.model import load_cameras
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 TEMPLE = DATA / "middlebury_templeSparseRing"
 
 if not DATA.is_dir():

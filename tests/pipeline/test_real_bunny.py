@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 BUNNY = DATA / "stanford_bunny"
 
 if not DATA.is_dir():

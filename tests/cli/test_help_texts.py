@@ -115,7 +115,7 @@ def test_extract_mesh_auto_follows_the_constraint_spacing(monkeypatch):
 
 
 def test_every_number_in_the_readme_option_table_is_a_value_of_the_tables():
-    """The README's option table (tests/test_readme.py checks its options) says the same numbers as the code."""
+    """The README's option table (tests/project/test_readme.py checks its options) says the same numbers as the code."""
     from conftest import REPO
     from o3drbf.options import RegistrationOptions
 

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-PACKAGE = Path(__file__).resolve().parents[1] / "o3drbf"
+PACKAGE = Path(__file__).resolve().parents[2] / "o3drbf"
 
 #: What a measurement quote looks like, by name.
 PATTERNS = {

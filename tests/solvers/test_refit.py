@@ -10,7 +10,7 @@ from o3drbf.rbf.kernels import Gaussian, MultiOrder, ThinPlate
 from o3drbf.rbf.sums import polynomial_basis
 from o3drbf.solvers import Refitter, solve
 
-from test_robust import KERNEL, radial_error, sphere_constraints
+from conftest import ROBUST_KERNEL as KERNEL, radial_error, sphere_constraints
 from test_solve import reference as full_reference
 
 

@@ -1,7 +1,7 @@
 """``o3drbf photos``: photographs -> carved shell -> closed coloured mesh.
 
 Truth: ray-cast photographs of a unit sphere with a known colour pattern
-(see tests/test_carve.py); on the shared data, the Middlebury temple's
+(see tests/photo/test_carve.py); on the shared data, the Middlebury temple's
 silhouettes.
 """
 

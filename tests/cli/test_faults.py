@@ -42,7 +42,7 @@ from o3drbf.rbf.kernels import MultiOrder
 from o3drbf.surface import ImplicitSurface
 from o3drbf.synthetic.shapes import Sphere
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 PY = sys.executable
 
 

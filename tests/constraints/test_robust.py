@@ -6,45 +6,14 @@ import pytest
 from o3drbf.constraints.core import EXTERIOR, SPHERE, SURFACE, Constraints, bounding_sphere
 from o3drbf.pipeline import fit
 from o3drbf.prep.normalize import Normalization
-from o3drbf.rbf.kernels import make_kernel
 from o3drbf.constraints.robust import geometric_residuals, huber_weights, robust_reweight, tukey_weights
 from o3drbf.synthetic.shapes import Sphere
 
-R = 0.8
-N = 500
-KERNEL = make_kernel("multiorder", delta=10.0, tau=0.01)
+from conftest import ROBUST_KERNEL as KERNEL, ROBUST_N as N, ROBUST_R as R, radial_error, sphere_constraints  # noqa: E402
 
 
 def fitter(c):
     return fit(c, KERNEL, Normalization.identity(), solver="dense")
-
-
-def sphere_constraints(outlier_fraction, noise=0.0, seed=0):
-    """Samples of a sphere of radius R (box units) plus gross outliers 15-40% of R off it, in or out (last rows)."""
-    pts, _ = Sphere(R).sample(N, noise=noise, seed=seed)
-    rng = np.random.default_rng(seed + 1)
-    k = int(round(outlier_fraction * N))
-    d = rng.normal(size=(k, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    out = d * (R * (1 + rng.choice([-1.0, 1.0], k) * rng.uniform(0.15, 0.4, k)))[:, None]
-    c = Constraints.concat(
-        Constraints.of_kind(np.vstack([pts, out]), SURFACE, 1e-3),
-        Constraints.of_kind(pts[::10] * (1 + 0.05 / R), EXTERIOR, 2.0),
-        Constraints.of_kind(bounding_sphere(pts, 64), SPHERE, 2.0),
-    )
-    return c, pts, k
-
-
-def radial_error(surface, directions):
-    """Mean |r - R| of the fitted zero set along rays from the centre (bisection; truth: the sphere)."""
-    d = directions / np.linalg.norm(directions, axis=1, keepdims=True)
-    lo, hi = np.full(len(d), 0.3 * R), np.full(len(d), 1.7 * R)
-    assert (surface.evaluate_box(d * lo[:, None]) > 0).all() and (surface.evaluate_box(d * hi[:, None]) < 0).all()
-    for _ in range(40):
-        mid = 0.5 * (lo + hi)
-        inside = surface.evaluate_box(d * mid[:, None]) > 0
-        lo, hi = np.where(inside, mid, lo), np.where(inside, hi, mid)
-    return float(np.abs(0.5 * (lo + hi) - R).mean())
 
 
 @pytest.fixture(scope="module")

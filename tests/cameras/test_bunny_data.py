@@ -10,7 +10,7 @@ from scipy.spatial import cKDTree
 
 from o3drbf.cameras.model import load_cameras, load_range_scans
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 BUNNY = DATA / "stanford_bunny"
 
 if not DATA.is_dir():
