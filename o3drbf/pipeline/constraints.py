@@ -13,7 +13,7 @@ from o3drbf.pointset import PointSet
 from o3drbf.prep.normalize import Normalization
 from o3drbf.prep.sampling import mean_spacing
 
-__all__ = ['build_constraints']
+__all__ = ["build_constraints"]
 
 log = logging.getLogger("o3drbf")
 

@@ -14,7 +14,7 @@ from o3drbf.rbf.kernels import Kernel, MultiOrder
 from o3drbf.solvers import FAST_EVALUATION_MIN, Refitter, Solution, solve
 from o3drbf.surface import ImplicitSurface
 
-__all__ = ['fit', 'surface_of', 'check_fit_memory', 'EARLY_CHECK_MIN', 'EARLY_CHECK_SLACK', 'early_fit_check', 'fit_surface']
+__all__ = ["fit", "surface_of", "check_fit_memory", "EARLY_CHECK_MIN", "EARLY_CHECK_SLACK", "early_fit_check", "fit_surface"]
 
 log = logging.getLogger("o3drbf")
 

@@ -11,7 +11,7 @@ from o3drbf.options import ConfidenceOptions, ExtractOptions, auto_resolution
 from o3drbf.pointset import PointSet
 from o3drbf.surface import ImplicitSurface
 
-__all__ = ['MIN_VOXEL_CELLS', 'check_voxel_size', 'extraction_bounds', 'mesh_surface', 'colour', 'mesh_confidence']
+__all__ = ["MIN_VOXEL_CELLS", "check_voxel_size", "extraction_bounds", "mesh_surface", "colour", "mesh_confidence"]
 
 log = logging.getLogger("o3drbf")
 

@@ -8,7 +8,7 @@ import numpy as np
 
 from o3drbf.pointset import PointSet
 
-__all__ = ['estimate_normals', 'check_given_normals', 'ensure_normals']
+__all__ = ["estimate_normals", "check_given_normals", "ensure_normals"]
 
 log = logging.getLogger("o3drbf")
 

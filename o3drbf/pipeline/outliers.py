@@ -10,7 +10,7 @@ from o3drbf.options import OutlierOptions
 from o3drbf.pipeline.records import OutlierReport
 from o3drbf.pointset import PointSet
 
-__all__ = ['remove_outliers']
+__all__ = ["remove_outliers"]
 
 log = logging.getLogger("o3drbf")
 

@@ -13,7 +13,7 @@ from o3drbf.pointset import PointSet
 from o3drbf.rbf.kernels import Kernel, MultiOrder, kernel_class, make_kernel
 from o3drbf.validation import per_point
 
-__all__ = ['choose_parameters']
+__all__ = ["choose_parameters"]
 
 log = logging.getLogger("o3drbf")
 

@@ -8,7 +8,7 @@ import numpy as np
 
 from o3drbf.pointset import PointSet
 
-__all__ = ['MIN_DISTINCT_POINTS', 'merge_repeated', 'drop_cameras_within_data']
+__all__ = ["MIN_DISTINCT_POINTS", "merge_repeated", "drop_cameras_within_data"]
 
 log = logging.getLogger("o3drbf")
 

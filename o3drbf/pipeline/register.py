@@ -9,7 +9,7 @@ import numpy as np
 from o3drbf.options import RegistrationOptions
 from o3drbf.pointset import PointSet
 
-__all__ = ['register_scans']
+__all__ = ["register_scans"]
 
 log = logging.getLogger("o3drbf")
 

@@ -20,7 +20,7 @@ from o3drbf.pipeline.register import register_scans
 from o3drbf.pointset import PointSet
 from o3drbf.prep.normalize import check_spans_volume
 
-__all__ = ['reconstruct']
+__all__ = ["reconstruct"]
 
 log = logging.getLogger("o3drbf")
 
