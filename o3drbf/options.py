@@ -49,6 +49,8 @@ __all__ = [
     "ExtractOptions",
     "CONFIDENCE_DEFAULTS",
     "ConfidenceOptions",
+    "TileOptions",
+    "API_ONLY",
 ]
 
 #: Outlier handling: "auto" (free-space consistency with cameras, an
@@ -97,7 +99,25 @@ DEFAULTS: dict = {
     # confidence (o3drbf.mesh.confidence): off by default, the default path unchanged
     "confidence": False,  # compute per-vertex confidence (a PLY vertex property "confidence")
     "trim": None,  # remove triangles with a vertex of confidence below this, in [0, 1]
+    # tiles (o3drbf.tiles): off by default; read by fit_tiled, reconstruct_tiled and extract_tiled only
+    "tiles": None,  # None: untiled; "auto": one tile per points_per_tile points (untiled on the command line when it fits); N tiles
+    "scheduler": None,  # None: a Dask LocalCluster of `workers` processes; "synchronous": this process; or a scheduler address
+    "workers": 2,  # workers of a LocalCluster started here (one thread each)
+    "memory_limit": None,  # per worker of that LocalCluster; None: 80 % of the available memory shared among them
+    "points_per_tile": 60_000,  # tiles="auto": target points per tile cell
+    "surface_count_per_tile": 3000,  # Poisson-disc surface constraints per tile support (None: all its points)
+    "global_count": 2000,  # surface constraints of the global coarse fit f0
+    "overlap": 0.25,  # support margin on each side, as a fraction of the cell's half-size ...
+    "min_overlap": 0.05,  # ... and at least this (box units)
+    "partition_sample": 1_000_000,  # points that decide f0, its outliers and the k-d cuts (a seeded uniform subsample)
+    "chunk_points": 1_000_000,  # points read and distributed to the tiles at a time
+    "tile_dir": None,  # folder for the per-tile point files (shared storage for remote workers); None: temporary / in memory
 }
+
+#: Options read only through the Python API (no command-line flag): ``bounds``
+#: and the tile sizes beyond ``--tiles``, ``--scheduler`` and ``--workers``.
+API_ONLY = ("bounds", "memory_limit", "points_per_tile", "surface_count_per_tile", "global_count", "overlap", "min_overlap",
+            "partition_sample", "chunk_points", "tile_dir")
 
 #: ``surface_count="auto"`` and ``resolution="auto"``: sparse scans keep the
 #: paper's ~3,000 constraints (and the dense solve), dense scans get detail:
@@ -256,24 +276,16 @@ CARVE_DEFAULTS = {
 PHOTO_DEFAULTS = {"delta": 4.0, "tau": 0.01, "lambda_surface": 1e-4, "exterior_ratio": 0.5, "surface_count": 3000, "mesh_resolution": 128,
                   "denoise": False}
 
-#: Tiled reconstruction (:func:`o3drbf.tiles.fit.fit_tiled`): tile sizes,
-#: and the single-machine defaults for the rest (lambda_exterior relative to phi(0)).
+#: Tiled reconstruction (:func:`o3drbf.tiles.fit.fit_tiled`): the tile sizes of
+#: :data:`DEFAULTS` (:class:`TileOptions`), the root box's padding (a
+#: fraction of the data box's longest side), and the points the global fit
+#: f0's stages see per surface constraint of it (a subsample of the
+#: partition sample: f0 is coarse, the tiles carry the detail).
 TILE_DEFAULTS = {
-    "points_per_tile": 60_000,
-    "surface_count_per_tile": 3000,
-    "global_count": 2000,
-    "overlap": 0.25,
-    "min_overlap": 0.05,
+    **{k: DEFAULTS[k] for k in ("points_per_tile", "surface_count_per_tile", "global_count", "overlap", "min_overlap",
+                                "partition_sample", "chunk_points")},
     "root_pad": 0.1,
-    "partition_sample": 1_000_000,  # points that decide f0, the noise estimate and the k-d cuts (a uniform subsample)
-    "chunk_points": 1_000_000,  # points read and distributed to the tiles at a time
-    "delta": 10.0,
-    "tau": 0.01,
-    "lambda_surface": 1e-3,
-    "lambda_exterior": DEFAULTS["lambda_exterior"],
-    "exterior_ratio": DEFAULTS["exterior_ratio"],
-    "exterior_offset": DEFAULTS["exterior_offset"],
-    "sphere_count": DEFAULTS["sphere_count"],
+    "base_points_per_constraint": 20,
 }
 
 #: Per-vertex confidence (:func:`o3drbf.mesh.confidence.vertex_confidence`):
@@ -591,6 +603,81 @@ class ConfidenceOptions:
         return self
 
 
+@dataclass(frozen=True)
+class TileOptions:
+    """Tiled reconstruction (:mod:`o3drbf.tiles`): f = f0 + sum_t W_t g_t over k-d tiles.
+
+    Read by :func:`o3drbf.tiles.fit.fit_tiled`, :func:`o3drbf.tiles.run.reconstruct_tiled`
+    and :func:`o3drbf.tiles.extract.extract_tiled`; the other groups (outliers,
+    constraints, parameters, fit, extract) apply to the global fit f0 and to
+    every tile as they apply to the untiled path.
+
+    Attributes
+    ----------
+    tiles : None, "auto" or int
+        Number of tiles; "auto": ``ceil(N / points_per_tile)``; None: untiled
+        (the tiled entry points read it as "auto").
+    scheduler : None, "synchronous", str or distributed.Client
+        Where tile tasks run (:func:`o3drbf.tiles.cluster.tile_client`): None a
+        LocalCluster of ``workers`` processes, "synchronous" this process, a
+        Dask scheduler address (``tcp://HOST:PORT``), or a client (used as given).
+    workers : int
+        Workers of a LocalCluster started here (one thread each).
+    memory_limit : int, str or None
+        Per-worker memory limit of that LocalCluster (None: 80 % of the
+        available memory shared among the workers).
+    points_per_tile : int
+        Target points per tile cell for ``tiles="auto"``.
+    surface_count_per_tile : int or None
+        Poisson-disc surface constraints per tile support (None: all its points).
+    global_count : int
+        Surface constraints of the global coarse fit f0.
+    overlap, min_overlap : float
+        Support margin on each side of a cell: ``max(overlap * half-size, min_overlap)``
+        (``min_overlap`` in box units).
+    partition_sample : int
+        At most this many points (a seeded uniform subsample) decide f0 and the k-d cuts.
+    chunk_points : int
+        Points read and distributed to the tiles at a time.
+    tile_dir : path or None
+        Folder for the per-tile point files, storage every worker can read
+        (None: a temporary folder for a file input, per-tile arrays otherwise).
+    """
+
+    tiles: object = DEFAULTS["tiles"]
+    scheduler: object = DEFAULTS["scheduler"]
+    workers: int = DEFAULTS["workers"]
+    memory_limit: object = DEFAULTS["memory_limit"]
+    points_per_tile: int = DEFAULTS["points_per_tile"]
+    surface_count_per_tile: int | None = DEFAULTS["surface_count_per_tile"]
+    global_count: int = DEFAULTS["global_count"]
+    overlap: float = DEFAULTS["overlap"]
+    min_overlap: float = DEFAULTS["min_overlap"]
+    partition_sample: int = DEFAULTS["partition_sample"]
+    chunk_points: int = DEFAULTS["chunk_points"]
+    tile_dir: object = DEFAULTS["tile_dir"]
+
+    def validate(self) -> "TileOptions":
+        if self.tiles is not None and self.tiles != "auto":
+            if isinstance(self.tiles, str):
+                raise ValueError(f"tiles must be 'auto' or a whole number >= 1, got {self.tiles!r}")
+            check_number("tiles", self.tiles, low=1, integer=True)
+        if self.scheduler is not None and not isinstance(self.scheduler, str) and not hasattr(self.scheduler, "submit"):
+            raise ValueError(f"scheduler must be None, 'synchronous', a Dask scheduler address or a distributed.Client, got {self.scheduler!r}")
+        check_number("workers", self.workers, low=1, high=1024, integer=True)
+        check_number("points_per_tile", self.points_per_tile, low=100, integer=True)
+        if self.surface_count_per_tile is not None:
+            check_number("surface_count_per_tile", self.surface_count_per_tile, low=10, integer=True)
+        check_number("global_count", self.global_count, low=10, integer=True)
+        check_number("overlap", self.overlap, low=0.0)
+        check_number("min_overlap", self.min_overlap, low=0.0)
+        if self.overlap == 0 and self.min_overlap == 0:
+            raise ValueError("overlap and min_overlap are both 0: tile supports must overlap (raise overlap)")
+        check_number("partition_sample", self.partition_sample, low=100, integer=True)
+        check_number("chunk_points", self.chunk_points, low=1, integer=True)
+        return self
+
+
 #: Flat option name -> (group attribute, field name).
 _FLAT = {
     "register": ("registration", "method"),
@@ -603,13 +690,14 @@ _FLAT = {
     **{f.name: ("extract", f.name) for f in fields(ExtractOptions)},
     "confidence": ("confidence", "confidence"),
     "trim": ("confidence", "trim"),
+    **{f.name: ("tiles", f.name) for f in fields(TileOptions)},
 }
 assert set(_FLAT) == set(DEFAULTS), set(_FLAT) ^ set(DEFAULTS)
 
 
 @dataclass(frozen=True)
 class Options:
-    """All options of :func:`o3drbf.reconstruct`, one group per stage."""
+    """All options of :func:`o3drbf.reconstruct` and of the tiled entry points, one group per stage."""
 
     registration: RegistrationOptions = field(default_factory=RegistrationOptions)
     outliers: OutlierOptions = field(default_factory=OutlierOptions)
@@ -618,6 +706,7 @@ class Options:
     fit: FitOptions = field(default_factory=FitOptions)
     extract: ExtractOptions = field(default_factory=ExtractOptions)
     confidence: ConfidenceOptions = field(default_factory=ConfidenceOptions)
+    tiles: TileOptions = field(default_factory=TileOptions)
 
     @classmethod
     def create(cls, base: "Options | None" = None, **flat) -> "Options":

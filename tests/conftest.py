@@ -79,7 +79,7 @@ def radial_error(surface, directions):
 #: or listed here; every parametrization of a listed test is slow.
 SLOW_MODULES = {
     "test_logs.py", "test_notebook.py", "test_packaging.py", "test_readme.py", "test_real_bunny.py", "test_robust_default.py",
-    "test_tiles.py", "test_tiles_outofcore.py",
+    "test_tiles.py", "test_tiles_outofcore.py", "test_tiles_parity.py",
 }
 SLOW_TESTS = {
     "test_sparse.py": {"test_sparse_cloud_gives_one_closed_piece"},
@@ -126,7 +126,7 @@ SLOW_TESTS = {
     },
     "test_kernels.py": {"test_kernel_matrix_is_positive_definite", "test_tabulated_kernel_matches_the_exact_one"},
     "test_lidar.py": {
-        "test_cli_tiles_on_e57_leaves_the_scanners_out_in_one_line", "test_e57_reconstructs_the_torus_with_its_scanners",
+        "test_cli_tiles_on_e57_uses_the_scanners", "test_e57_reconstructs_the_torus_with_its_scanners",
         "test_las_and_laz_read_back_and_reconstruct_a_sphere"
     },
     "test_options.py": {

@@ -5,7 +5,7 @@ import pytest
 
 import o3drbf
 from o3drbf.cli.commands import build_parser, options_from_args
-from o3drbf.options import DEFAULTS, VIEWER_OVERRIDES, Options
+from o3drbf.options import API_ONLY, DEFAULTS, VIEWER_OVERRIDES, Options
 from o3drbf.pointset import PointSet
 from o3drbf.rbf.kernels import KERNELS, Kernel, register_kernel
 from o3drbf.synthetic.shapes import Sphere, Torus
@@ -18,7 +18,8 @@ def test_cli_api_viewer_and_compare_share_the_defaults():
     assert options_from_args(args) == api
     # Every option of the table is on the command line, with the table's default.
     for name, value in DEFAULTS.items():
-        if name == "bounds":
+        if name in API_ONLY:  # bounds and the tile sizes: Python only
+            assert not hasattr(args, name), name
             continue
         assert getattr(args, name) == value, name
     from o3drbf.viewers.refit import FitParams

@@ -98,6 +98,22 @@ def add_option_arguments(parser: argparse.ArgumentParser) -> None:
                    "(default: no trimming)")
 
 
+def _add_tile_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--tiles``, ``--scheduler``, ``--workers``: the tile group of :data:`o3drbf.options.DEFAULTS` on the command line
+    (its other fields are :data:`o3drbf.options.API_ONLY`)."""
+    d = DEFAULTS
+    g = parser.add_argument_group("tiles (beyond one machine; needs pip install 'o3drbf[tiles]')")
+    g.add_argument("--tiles", type=_tiles_value, default=d["tiles"], metavar="auto|N",
+                   help="tiled reconstruction over N k-d tiles blended by a partition of unity (auto: untiled when the input fits in "
+                   f"memory, said in one line; else one tile per {d['points_per_tile']:,} points)")
+    g.add_argument("--scheduler", default=d["scheduler"], metavar="ADDR",
+                   help="Dask scheduler address for --tiles, tcp://HOST:PORT (a binary PLY's tile files go to the temporary "
+                   "folder: on other machines point TMPDIR at storage they share; default: a local cluster of --workers processes; "
+                   "'synchronous': in this process)")
+    g.add_argument("--workers", type=_positive_int, default=d["workers"],
+                   help="worker processes of the local Dask cluster with --tiles, one thread each (default %(default)s)")
+
+
 def _auto_or_bool(text: str):
     """argparse type: "auto", or on/off (yes/no, true/false) as a bool."""
     t = str(text).strip().lower()
@@ -151,15 +167,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--no-color", action="store_true", help="do not colour the mesh from the input points' colours (used when the input has colours)")
     g.add_argument("-q", "--quiet", action="store_true", help="no progress bars or summary")
     g.add_argument("-v", "--verbose", action="store_true", help="log each step")
-    from o3drbf.options import TILE_DEFAULTS
-
-    g = rec.add_argument_group("tiles (beyond one machine; needs pip install 'o3drbf[tiles]')")
-    g.add_argument("--tiles", type=_tiles_value, default=None, metavar="auto|N",
-                   help="tiled reconstruction over N k-d tiles blended by a partition of unity (auto: untiled when the input fits in "
-                   f"memory, said in one line; else one tile per {TILE_DEFAULTS['points_per_tile']:,} points)")
-    g.add_argument("--scheduler", default=None, metavar="ADDR",
-                   help="Dask scheduler address for --tiles (default: a local cluster of --workers processes; 'synchronous': in this process)")
-    g.add_argument("--workers", type=_positive_int, default=2, help="workers of the local Dask cluster with --tiles (default %(default)s)")
+    _add_tile_arguments(rec)
 
     from o3drbf.evaluation.compare import add_compare_arguments
 
@@ -341,33 +349,13 @@ def _tiles_value(text: str):
 
 
 def _reconstruct_tiled(args, data, options, out, t0) -> int:
-    """``--tiles``: the tiled fit and tiled marching cubes (:mod:`o3drbf.tiles`)."""
+    """``--tiles``: the tiled fit and tiled marching cubes (:mod:`o3drbf.tiles`), with the untiled path's stages in every fit."""
     from o3drbf.io import files as io
+    from o3drbf.io.files import PlyVertices
     from o3drbf.tiles.run import reconstruct_tiled
 
-    from o3drbf.io.files import PlyVertices
-
-    from dataclasses import replace
-
-    p = options.parameters
     mapped = isinstance(data, PlyVertices)
-    if not mapped and data.cameras is not None and args.cameras is None:  # the input's own scanners (E57, .conf, ...)
-        log.warning("--tiles does not use cameras: the %d camera(s) or scanner(s) of %s are left out (no free-space "
-                    "constraints nor free-space outlier check)", len(data.cameras), args.input)
-        data = replace(data, cameras=None, point_camera=None)
-    if (not mapped and data.cameras is not None) or p.kernel != "multiorder":
-        raise ValueError("--tiles needs points with normals and the multiorder kernel; drop --cameras/--kernel")
-    if options.confidence.wanted:
-        raise ValueError("--confidence and --trim are not available with --tiles; drop them or --tiles")
-    if not mapped and data.normals is None:
-        log.warning("%s has no normals: estimating and orienting them with Open3D", args.input)
-    c = options.constraints
-    surface, mesh, stats = reconstruct_tiled(
-        data if mapped else data.points, None if mapped else data.normals, tiles=args.tiles, scheduler=args.scheduler, workers=args.workers,
-        resolution=128 if options.extract.resolution == "auto" else options.extract.resolution, voxel_size=options.extract.voxel_size, seed=args.seed, progress=not args.quiet,
-        auto=p.auto, delta=p.delta, tau=p.tau, lambda_surface=p.lambda_surface, lambda_exterior=p.lambda_exterior,
-        exterior_ratio=c.exterior_ratio, exterior_offset=c.exterior_offset, sphere_count=c.sphere_count, solver=options.fit.solver,
-    )
+    surface, mesh, stats = reconstruct_tiled(data, options=options, seed=args.seed, progress=not args.quiet)
     io.write_mesh(out, mesh, inputs=[args.input])
     if args.save_model:
         surface.save(args.save_model)
@@ -405,7 +393,13 @@ def tiled_summary(stats: dict, input_path, output_path, seconds: float, mapped: 
     workers = stats["workers"]
     lines = [
         f"o3drbf reconstruct --tiles: {input_path} -> {output_path}",
-        f"  points           {stats['points']:,}" + (" (memory-mapped, spread to per-tile files)" if mapped else ""),
+        f"  points           {stats['points']:,} read, {stats.get('kept', stats['points']):,} kept"
+        + (f" ({stats['outliers']:,} removed as outliers)" if stats.get("outliers") else "")
+        + (" (memory-mapped, spread to per-tile files)" if mapped else ""),
+        *([f"  cameras          {stats['cameras']}: exterior constraints toward them and the free-space outlier test in every tile"]
+          if stats.get("cameras") else []),
+        *([f"  denoised         in {stats['denoised_tiles']} of {stats['tiles']} tiles (surface constraints moved onto local fits "
+           "of the points)"] if stats.get("denoised_tiles") else []),
         f"  tiles            {stats['tiles']}; constraints per tile min {c['min']:,}, median {c['median']:,.0f}, max {c['max']:,}",
         f"  blend overlap    {stats['overlap']:.0%} of each cell's half-size on every side (at least {stats['min_overlap']:g} box units)",
         f"  mesh             {stats['triangles']:,} triangles, {stats['vertices']:,} vertices",

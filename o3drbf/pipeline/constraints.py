@@ -18,7 +18,8 @@ __all__ = ["build_constraints"]
 log = logging.getLogger("o3drbf")
 
 
-def build_constraints(data: PointSet, options: ConstraintOptions = ConstraintOptions(), *, seed: int = 0) -> ConstraintSet:
+def build_constraints(data: PointSet, options: ConstraintOptions = ConstraintOptions(), *, seed: int = 0,
+                      normalization: Normalization | None = None) -> ConstraintSet:
     """Surface, exterior and sphere constraints in the normalized box.
 
     Surface constraints are a Poisson-disc subset of the points; exterior
@@ -33,6 +34,10 @@ def build_constraints(data: PointSet, options: ConstraintOptions = ConstraintOpt
         Needs normals or cameras (see :func:`ensure_normals`).
     options : ConstraintOptions
     seed : int
+    normalization : Normalization, optional
+        The data -> box map (default: the points' own, :meth:`Normalization.from_points`);
+        a tile of a larger cloud passes the whole cloud's, so that its
+        constraints, offsets and noise are in the box of the whole.
 
     Returns
     -------
@@ -48,7 +53,7 @@ def build_constraints(data: PointSet, options: ConstraintOptions = ConstraintOpt
     if auto_count:
         count = auto_surface_count(len(data))
     pts = data.points
-    norm = Normalization.from_points(pts)
+    norm = Normalization.from_points(pts) if normalization is None else normalization
     box = norm.forward(pts)
     idx = surface_constraints(box, count=count, radius=options.surface_radius, seed=seed)
     surf = box[idx]

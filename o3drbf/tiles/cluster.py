@@ -102,7 +102,7 @@ def measured_call(func, i: int, **kwargs):
         What ``func`` returned.
     record : dict
         ``task``, ``worker`` (the Dask worker's address, else ``"pid N"``),
-        ``seconds``, ``peak_rss`` (the worker process's peak resident memory so
+        ``seconds``, ``cpu`` (CPU seconds of the worker process, user + system, during the task), ``peak_rss`` (the worker process's peak resident memory so
         far, bytes, :func:`peak_rss`) and ``rss`` (resident memory after the task), measured in
         the process that ran the task.
     """
@@ -110,16 +110,16 @@ def measured_call(func, i: int, **kwargs):
 
     import psutil
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     out = func(i, **kwargs)
-    seconds = time.perf_counter() - t0
+    seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
     try:
         from distributed import get_worker
 
         worker = get_worker().address
     except (ImportError, ValueError):
         worker = f"pid {os.getpid()}"
-    rec = {"task": int(i), "worker": worker, "seconds": seconds,
+    rec = {"task": int(i), "worker": worker, "seconds": seconds, "cpu": cpu,
            "peak_rss": peak_rss(),
            "rss": int(psutil.Process().memory_info().rss)}
     return out, rec

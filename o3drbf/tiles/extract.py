@@ -80,6 +80,65 @@ def _positions(lat, i, j, k):
     return np.column_stack([o[0] + i * h, o[1] + j * h, o[2] + k * h])
 
 
+#: The middle level of the fine pass: nodes every MID lattice steps, exact in the coarse band.
+MID = 2
+
+#: A coarse cell is in the band when its corners change sign or come within this fraction of their spread of
+#: the level (a local Lipschitz test, as in :func:`o3drbf.extract.evaluate_grid`); a middle cell, when they
+#: come within FINE_MARGIN (0: they change sign, as on that function's finest level).
+BAND_MARGIN = 0.5
+FINE_MARGIN = 0.0
+
+
+def _level_values(lattice, axes, grid, first, stride: int, cells, func, known=None):
+    """Values at the lattice nodes ``axes`` (index arrays per axis) from a coarser grid, exact in its marked cells.
+
+    ``grid`` holds values at the nodes ``first + stride * m`` (per axis);
+    each node gets the trilinear interpolation of its grid cell's corners,
+    or ``func`` at the node when it is a corner of a cell marked in
+    ``cells`` (and not ``known`` already).  A node's value depends on the
+    node, the grid and the marks only, never on which tile asks.
+
+    Returns
+    -------
+    values : array of the axes' shape
+    exact : bool array, where ``func`` was evaluated
+    """
+    first = np.broadcast_to(np.asarray(first), (3,))
+    ng = np.array(grid.shape)
+    rel = [ax - first[a] for a, ax in enumerate(axes)]
+    ci = [np.minimum(r // stride, ng[a] - 2) for a, r in enumerate(rel)]
+    fr = [(r - ci[a] * stride) / stride for a, r in enumerate(rel)]
+    I, J, K = np.meshgrid(ci[0], ci[1], ci[2], indexing="ij")
+    X, Y, Z = np.meshgrid(fr[0], fr[1], fr[2], indexing="ij")
+    vals = np.zeros(I.shape)
+    for a in (0, 1):
+        wa = X if a else 1.0 - X
+        for b in (0, 1):
+            wb = Y if b else 1.0 - Y
+            for c in (0, 1):
+                wc = Z if c else 1.0 - Z
+                vals += (wa * wb * wc) * grid[I + a, J + b, K + c]
+    del I, J, K, X, Y, Z
+    # A node belongs to the grid cells ceil(r / stride) - 1 .. floor(r / stride).
+    cand_lo = [np.clip(-(-r // stride) - 1, 0, ng[a] - 2) for a, r in enumerate(rel)]
+    cand_hi = [np.clip(r // stride, 0, ng[a] - 2) for a, r in enumerate(rel)]
+    exact = np.zeros(vals.shape, dtype=bool)
+    for a in (0, 1):
+        ia = cand_hi[0] if a else cand_lo[0]
+        for b in (0, 1):
+            jb = cand_hi[1] if b else cand_lo[1]
+            for c in (0, 1):
+                kc = cand_hi[2] if c else cand_lo[2]
+                exact |= cells[np.ix_(ia, jb, kc)]
+    if known is not None:
+        exact &= ~known
+    where = np.nonzero(exact)
+    if where[0].size:
+        vals[where] = func(_positions(lattice, axes[0][where[0]], axes[1][where[1]], axes[2][where[2]]))
+    return vals, exact
+
+
 def coarse_task(t: int, surface=None, lattice: dict | None = None, level: float = 0.0) -> tuple[np.ndarray, np.ndarray] | None:
     """f - level at the coarse nodes of tile ``t``'s coarse cells.
 
@@ -116,40 +175,35 @@ def fine_task(t: int, surface=None, lattice: dict | None = None, coarse_values: 
         return None
     s = lattice["stride"]
     shape = np.array(lattice["shape"])
-    nc = np.array(lattice["coarse"])
     own_lo, own_hi = lo_c * s, hi_c * s  # fine cells [own_lo, own_hi)
     start = np.maximum(own_lo - 1, 0)
     stop = np.minimum(own_hi + 1, shape - 1)  # inclusive node range
+    func = (lambda x: surface.evaluate_box(x, approximate=True) - level)
+    # Middle level (stride MID): every node a function of the node alone (the global coarse values and band),
+    # on the block padded by one middle cell so that every fine node's middle cells are in it.
     axes = [np.arange(start[a], stop[a] + 1) for a in range(3)]
-    # Trilinear interpolation of the coarse values (per node, same arithmetic everywhere).
-    ci = [np.minimum(ax // s, nc[a] - 1) for a, ax in enumerate(axes)]
-    fr = [(ax - ci[a] * s) / s for a, ax in enumerate(axes)]
-    I, J, K = np.meshgrid(ci[0], ci[1], ci[2], indexing="ij")
-    X, Y, Z = np.meshgrid(fr[0], fr[1], fr[2], indexing="ij")
-    cv = coarse_values
-    vals = np.zeros(I.shape)
-    for a in (0, 1):
-        wa = X if a else 1.0 - X
-        for b in (0, 1):
-            wb = Y if b else 1.0 - Y
-            for c in (0, 1):
-                wc = Z if c else 1.0 - Z
-                vals += (wa * wb * wc) * cv[I + a, J + b, K + c]
-    # Exact values at nodes of band cells (a node belongs to coarse cells ceil(i/s)-1 .. floor(i/s)).
-    cand_lo = [np.clip(-(-ax // s) - 1, 0, nc[a] - 1) for a, ax in enumerate(axes)]
-    cand_hi = [np.clip(ax // s, 0, nc[a] - 1) for a, ax in enumerate(axes)]
-    exact = np.zeros(I.shape, dtype=bool)
-    for a in (0, 1):
-        ia = cand_hi[0] if a else cand_lo[0]
-        for b in (0, 1):
-            jb = cand_hi[1] if b else cand_lo[1]
-            for c in (0, 1):
-                kc = cand_hi[2] if c else cand_lo[2]
-                exact |= band[np.ix_(ia, jb, kc)]
-    where = np.nonzero(exact)
-    if where[0].size:
-        pts = _positions(lattice, axes[0][where[0]], axes[1][where[1]], axes[2][where[2]])
-        vals[where] = surface.evaluate_box(pts, approximate=True) - level
+    m = MID if s % MID == 0 and s > MID else 1
+    if m == 1:
+        vals, exact = _level_values(lattice, axes, coarse_values, 0, s, band, func)
+        evaluated = int(exact.sum())
+    else:
+        mstart = np.maximum((start - m) // m * m, 0)
+        mstop = np.minimum(-(-(stop + m) // m) * m, shape - 1)
+        mid_axes = [np.arange(mstart[a], mstop[a] + 1, m) for a in range(3)]
+        mid, mid_exact = _level_values(lattice, mid_axes, coarse_values, 0, s, band, func)
+        evaluated = int(mid_exact.sum())
+        corners = [mid[a:a + mid.shape[0] - 1, b:b + mid.shape[1] - 1, c:c + mid.shape[2] - 1]
+                   for a in (0, 1) for b in (0, 1) for c in (0, 1)]
+        mn, mx, absmin = np.min(corners, axis=0), np.max(corners, axis=0), np.min(np.abs(corners), axis=0)
+        cells = ((mn <= 0) & (mx >= 0)) | (absmin <= FINE_MARGIN * (mx - mn))
+        del corners
+        # Nodes of the middle level keep their value there (exact or not): only the others are evaluated.
+        on_mid = [((ax - mstart[a]) % m == 0) for a, ax in enumerate(axes)]
+        known = np.zeros(tuple(len(ax) for ax in axes), dtype=bool)
+        sel = np.ix_(*[np.flatnonzero(o) for o in on_mid])
+        known[sel] = mid_exact[np.ix_(*[(axes[a][on_mid[a]] - mstart[a]) // m for a in range(3)])]
+        vals, exact = _level_values(lattice, axes, mid, mstart, m, cells, func, known=known)
+        evaluated += int(exact.sum())
     small = np.abs(vals) < eps
     vals[small] = np.where(vals[small] > 0, eps, -eps)
     if closed:
@@ -161,7 +215,7 @@ def fine_task(t: int, surface=None, lattice: dict | None = None, coarse_values: 
             if stop[a] == shape[a] - 1:
                 sl[a] = -1
                 vals[tuple(sl)] = np.minimum(vals[tuple(sl)], -1e-9)
-    out = {"evaluated": int(where[0].size)}
+    out = {"evaluated": evaluated}
     if not (vals.min() < 0 < vals.max()) or min(vals.shape) < 2:
         return out
     verts, faces, _, _ = marching_cubes(vals, level=0.0, allow_degenerate=False)
@@ -189,55 +243,46 @@ def fine_task(t: int, surface=None, lattice: dict | None = None, coarse_values: 
     if not ((a < 0) != (b < 0)).all():
         raise RuntimeError("tiled extraction: a marching-cubes vertex is not on a sign-changing lattice edge (a bug)")
     verts = node + (a / (a - b))[:, None] * step
-    if refine:  # onto f = level along each edge, in global lattice coordinates (the same in every tile)
-        verts = refine_on_edges(lambda x: surface.evaluate_box(x, approximate=True), verts, vals, lattice["origin"], lattice["h"],
-                                level, first_node=start)
-    box_verts = lattice["origin"] + verts * lattice["h"]
-    _, g = surface.evaluate_box(box_verts, gradient=True, approximate=True)
+    if refine:  # onto f = level along each edge, in global lattice coordinates (the same in every tile); grad f from the last step
+        verts, g = refine_on_edges(lambda x, gradient=False: surface.evaluate_box(x, gradient=gradient, approximate=True), verts, vals,
+                                   lattice["origin"], lattice["h"], level, first_node=start, gradient=True)
+    else:
+        _, g = surface.evaluate_box(lattice["origin"] + verts * lattice["h"], gradient=True, approximate=True)
     glen = np.linalg.norm(g, axis=1, keepdims=True)
     normals = -g / np.where(glen > 0, glen, 1.0)
     out.update(ids=ids, verts=verts, normals=normals, faces=np.ascontiguousarray(faces))
     return out
 
 
-def extract_tiled(
-    surface,
-    resolution: int | None = 128,
-    voxel_size: float | None = None,
-    bounds=None,
-    level: float = 0.0,
-    closed: bool = True,
-    client=None,
-    workers: int = 2,
-    progress: bool = False,
-    stats: dict | None = None,
-    refine: bool = True,
-):
+def extract_tiled(surface, options=None, *, level: float = 0.0, closed: bool = True, client=None, progress: bool = False,
+                  stats: dict | None = None, refine: bool = True, **option_values):
     """Triangle mesh of the tiled surface's level set, meshed tile by tile and welded.
 
     Parameters
     ----------
     surface : TiledSurface
-    resolution : int
-        Lattice cells along the longest side of ``bounds``.
-    voxel_size : float, optional
-        Lattice spacing in data units (overrides ``resolution``).
-    bounds : (2, 3) array_like, optional
-        Data-coordinate box; default ``surface.metadata["bounds"]``.
+    options : Options, optional
+        Its ``extract`` group (``resolution``: cells along the longest side
+        of the bounds, "auto": :func:`o3drbf.options.auto_resolution` of the
+        tiles' median constraint spacing; ``voxel_size`` in data units,
+        overriding it; ``bounds``, default ``surface.metadata["bounds"]``)
+        and its ``tiles`` group (``scheduler``, ``workers``, ``memory_limit``).
     level : float
     closed : bool
         Cap the surface at the lattice's faces (closed mesh).
-    client, workers
-        Where tiles run (:func:`o3drbf.tiles.cluster.tile_client`).
+    client : None, "synchronous", scheduler address or distributed.Client, optional
+        Where tiles run (:func:`o3drbf.tiles.cluster.tile_client`); default the ``scheduler`` option.
     progress : bool
         One bar tick per tile and pass.
     stats : dict, optional
-        Filled with counts and timings (``evaluated``, ``coarse_nodes``, seconds) and
-        ``workers``: per worker, tasks, summed task seconds and peak memory
-        (:func:`o3drbf.tiles.cluster.worker_summary`).
+        Filled with counts and timings (``evaluated``, ``coarse_nodes``, seconds,
+        CPU seconds per pass ``cpu``) and ``workers``: per worker, tasks,
+        summed task seconds and peak memory (:func:`o3drbf.tiles.cluster.worker_summary`).
     refine : bool
         Move every vertex along its lattice edge onto f = ``level`` (three
         false-position steps, as :func:`o3drbf.extract.extract_mesh` does by default).
+    **option_values
+        Keys of :data:`o3drbf.options.DEFAULTS` over ``options`` (``resolution=128``, ``workers=4``, ...).
 
     Returns
     -------
@@ -248,17 +293,39 @@ def extract_tiled(
     ------
     RuntimeError
         No surface at ``level`` inside ``bounds``.
+
+    Examples
+    --------
+    >>> from o3drbf.synthetic.shapes import Torus
+    >>> from o3drbf.tiles.extract import extract_tiled
+    >>> from o3drbf.tiles.fit import fit_tiled
+    >>> pts, nrm = Torus(0.7, 0.25).sample(2000, seed=1)
+    >>> surface = fit_tiled(pts, nrm, tiles=2, scheduler="synchronous", global_count=300, surface_count_per_tile=500)
+    >>> mesh = extract_tiled(surface, resolution=32, scheduler="synchronous")
+    >>> mesh.is_watertight(), mesh.euler_poincare_characteristic()
+    (True, 0)
     """
     import open3d as o3d
-    from scipy import ndimage
 
+    from o3drbf.options import Options, auto_resolution
+
+    opts = Options.create(options, **option_values)
+    opts.extract.validate()
+    opts.tiles.validate()
+    resolution = opts.extract.resolution
+    if resolution == "auto":
+        spacings = [t["spacing"] for t in surface.metadata.get("tiles", []) if t.get("constraints") and np.isfinite(t.get("spacing", np.nan))]
+        resolution = auto_resolution(float(np.median(spacings)) if spacings else float("nan"))
+    voxel_size, bounds = opts.extract.voxel_size, opts.extract.bounds
+    run_on = client if client is not None else opts.tiles.scheduler
+    workers = opts.tiles.workers
     level = check_number("level", level)
     lat = lattice_for(surface, resolution, voxel_size, bounds)
     count = len(surface.partition)
     nc = np.array(lat["coarse"])
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     records: list = []
-    with tile_client(client, tasks=count, workers=workers) as c:
+    with tile_client(run_on, tasks=count, workers=workers, memory_limit=opts.tiles.memory_limit) as c:
         parts = run_tasks(c, coarse_task, count, {"surface": surface, "lattice": lat, "level": level}, progress=progress,
                           desc="coarse lattice", records=records)
         cv = np.full(tuple(nc + 1), np.nan)
@@ -272,8 +339,7 @@ def extract_tiled(
         corners = [cv[a : a + nc[0], b : b + nc[1], d : d + nc[2]] for a in (0, 1) for b in (0, 1) for d in (0, 1)]
         mn, mx = np.min(corners, axis=0), np.max(corners, axis=0)
         absmin = np.min(np.abs(corners), axis=0)
-        band = ((mn <= 0) & (mx >= 0)) | (absmin <= 0.5 * (mx - mn))
-        band = ndimage.binary_dilation(band, structure=np.ones((3, 3, 3), bool))
+        band = ((mn <= 0) & (mx >= 0)) | (absmin <= BAND_MARGIN * (mx - mn))
         steps = []
         for axis in range(3):
             a = np.moveaxis(cv, axis, 0)
@@ -283,11 +349,12 @@ def extract_tiled(
         if steps.size == 0:
             raise RuntimeError(f"No surface found at level {level}: f - level ranges over [{cv.min():.3g}, {cv.max():.3g}] on the coarse lattice")
         eps = CORNER_GAP * float(np.median(steps)) / lat["stride"]
-        t1 = time.perf_counter()
+        t1, c1 = time.perf_counter(), time.process_time()
         pieces = run_tasks(c, fine_task, count, {"surface": surface, "lattice": lat, "coarse_values": cv, "band": band,
                                                  "eps": eps, "level": level, "closed": closed, "refine": refine}, progress=progress, desc="meshing tiles",
                            records=records)
         t_fine = time.perf_counter() - t1
+    c2 = time.process_time()
     evaluated = int(sum(p["evaluated"] for p in pieces if p is not None))
     pieces = [p for p in pieces if p is not None and "ids" in p]
     if not pieces:
@@ -314,6 +381,8 @@ def extract_tiled(
             evaluated=evaluated, vertices_before_weld=int(len(ids)),
             vertices=int(len(uniq)), weld_mismatch=mismatch, coarse_seconds=t_coarse, fine_seconds=t_fine,
             seconds=time.perf_counter() - t0, workers=worker_summary(records),
+            cpu={"coarse_client": c1 - c0, "fine_client": c2 - c1, "weld": time.process_time() - c2,
+                 "coarse_tasks": float(sum(r["cpu"] for r in records[:count])), "fine_tasks": float(sum(r["cpu"] for r in records[count:]))},
         )
     log.info("tiled extraction: lattice %s, %d vertices (%d before welding), %d triangles in %.1f s",
              lat["shape"], len(uniq), len(ids), len(faces), time.perf_counter() - t0)

@@ -2,17 +2,29 @@
 
     f(x) = f0(x) + sum_t W_t(x) g_t(x)
 
-f0 is fitted (in this process) to a Poisson-disc subsample of the points (of
-a seeded sample of ``partition_sample`` of them when there are more) with the
-normal path's constraints (surface, exterior along normals,
-bounding sphere).  Tile t then fits g_t to the residual ``y - f0`` at
-surface and exterior constraints built, the same way, from the points
-inside its support, handed to it by a chunked pass (a per-tile file or
-array: no process needs all the points); tiles are independent tasks (Dask
-futures, or this process).  Kernel and parameters follow the normal path: the multi-order
-basis, with ``auto`` the rule of :mod:`o3drbf.constraints.parameters`
-applied to each fit's own constraint spacing (the tiles' are denser than
-f0's), else the paper's values.
+Both run the untiled path's stages (:mod:`o3drbf.pipeline`) on their own
+points, in the box of the whole cloud:
+
+- f0, in this process, on a seeded uniform sample of the points
+  (``partition_sample`` of them, all when there are fewer, decide the k-d
+  cuts and which cameras lie inside the data and are dropped; a seeded
+  subsample of ``base_points_per_constraint`` points per constraint of f0,
+  :data:`o3drbf.options.TILE_DEFAULTS`, runs f0's stages): outliers
+  removed (free space with cameras or scanners, the isolated-point rule),
+  given normals checked, ``global_count`` surface
+  constraints (denoised when the points are noisy), exterior constraints
+  toward the cameras or along the normals, the bounding sphere, automatic
+  parameters, the robust fit;
+- tile t, as a task (Dask future, or this process), on the points inside
+  its support, handed to it by a chunked pass (a per-tile file or array: no
+  process needs all the points): outliers removed, normals facing away from
+  their scanner flipped, up to ``surface_count_per_tile`` surface
+  constraints (denoised likewise) and their exterior constraints (kept
+  inside the support), parameters from its own spacing and noise, and the
+  robust fit of the residual ``y - f0`` at those constraints.
+
+The number of points kept counts each point in the one tile whose cell
+holds it (the cells partition the root box).
 """
 
 from __future__ import annotations
@@ -20,23 +32,15 @@ from __future__ import annotations
 import logging
 import math
 import time
+from dataclasses import replace
 
 import numpy as np
 
+from o3drbf.constraints.core import EXTERIOR, Constraints
 from o3drbf.options import TILE_DEFAULTS as OPTION_TILE_DEFAULTS
-from o3drbf.constraints.core import (
-    EXTERIOR,
-    SPHERE,
-    SURFACE,
-    Constraints,
-    bounding_sphere,
-    exterior_from_normals,
-    surface_constraints,
-)
+from o3drbf.options import ConstraintOptions, Options
 from o3drbf.prep.normalize import Normalization
-from o3drbf.prep.sampling import mean_spacing
 from o3drbf.rbf.kernels import make_kernel
-from o3drbf.solvers import solve
 from o3drbf.surface import ImplicitSurface
 from o3drbf.tiles.cluster import run_tasks, tile_client, worker_summary
 from o3drbf.tiles.partition import (
@@ -51,7 +55,7 @@ from o3drbf.tiles.partition import (
 from o3drbf.tiles.surface import TiledSurface
 from o3drbf.validation import as_points, as_vectors, check_number, shown
 
-__all__ = ["fit_tiled", "fit_tile", "point_source", "tile_count", "TILE_DEFAULTS"]
+__all__ = ["fit_tiled", "fit_tile", "point_source", "tile_count", "tile_options", "TILE_DEFAULTS"]
 
 log = logging.getLogger("o3drbf")
 
@@ -60,223 +64,300 @@ TILE_DEFAULTS = OPTION_TILE_DEFAULTS
 
 
 def tile_count(n_points: int, tiles="auto", points_per_tile: int = TILE_DEFAULTS["points_per_tile"]) -> int:
-    """Number of tiles: ``ceil(n_points / points_per_tile)`` for "auto", else ``tiles``.
+    """Number of tiles: ``ceil(n_points / points_per_tile)`` for "auto" (or None), else ``tiles``.
 
     Raises
     ------
     ValueError
         ``tiles`` not "auto" nor an integer in [1, n_points / 10].
     """
-    if isinstance(tiles, str):
-        if tiles != "auto":
+    if tiles is None or isinstance(tiles, str):
+        if tiles not in (None, "auto"):
             raise ValueError(f"tiles must be 'auto' or a positive integer, got {shown(tiles)}")
         ppt = check_number("points_per_tile", points_per_tile, low=100, integer=True)
         return max(1, math.ceil(n_points / ppt))
     return check_number("tiles", tiles, low=1, high=max(1, n_points // 10), integer=True)
 
 
-def _kernel_and_lambda(spacing: float, noise: float | None, scale: float, delta, tau, lambda_surface):
-    """The multi-order kernel and surface lambda: given values win, else the auto rule (noise given), else the paper."""
-    chosen = None
-    if noise is not None and None in (delta, tau, lambda_surface):
-        from o3drbf.constraints.parameters import parameters_from
+def tile_options(options: Options | None = None, **option_values) -> Options:
+    """The validated :class:`~o3drbf.options.Options` of a tiled entry point: ``options`` with flat names over it.
 
-        chosen = parameters_from(spacing, noise, scale)
-    d = delta if delta is not None else (chosen.delta if chosen else TILE_DEFAULTS["delta"])
-    t = tau if tau is not None else (chosen.tau if chosen else TILE_DEFAULTS["tau"])
-    kernel = make_kernel("multiorder", delta=d, tau=t)
-    if lambda_surface is not None:
-        lam = float(lambda_surface)
-    elif chosen is not None:
-        lam = chosen.lambda_relative * kernel.value_at_zero
-    else:
-        lam = TILE_DEFAULTS["lambda_surface"]
-    return kernel, lam
+    Raises
+    ------
+    ValueError
+        An unknown name or a bad value; the kernel is not the multi-order one
+        (the tiles' fits and the saved model take the multi-order basis);
+        confidence or trimming asked for (not available on tiles).
+    """
+    opts = Options.create(options, **option_values).validate()
+    kernel = opts.parameters.kernel
+    if getattr(kernel, "name", kernel) != "multiorder":
+        raise ValueError(f"tiled reconstruction takes the multiorder kernel, not {getattr(kernel, 'name', kernel)!r}; "
+                         "drop --kernel (or kernel=)")
+    if opts.confidence.wanted:
+        raise ValueError("confidence and trimming are not available with tiles; drop --confidence/--trim or --tiles")
+    return opts
 
 
-def _solve_single_thread(kernel, c: Constraints, solver: str):
-    """solve() with one BLAS thread: the same bits in any process or scheduler."""
+def _single_thread():
+    """One BLAS thread (threadpoolctl): the same bits in any process or scheduler."""
+    import contextlib
+
     try:
         from threadpoolctl import threadpool_limits
     except ImportError:  # without it, BLAS threads may change the last bits between schedulers
-        return solve(kernel, c.points, c.values, c.smoothing, method=solver)
-    with threadpool_limits(limits=1):
-        return solve(kernel, c.points, c.values, c.smoothing, method=solver)
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=1)
+
+
+def _stages(data, norm: Normalization, options: Options, surface_count, sphere_count: int, seed: int, support=None):
+    """The untiled stages from outliers to parameters on ``data``, in the box ``norm``.
+
+    Returns
+    -------
+    data : PointSet
+        The kept points.
+    outliers : OutlierReport
+    cset : ConstraintSet
+        Exterior constraints outside ``support`` ((centre, rho), box) dropped.
+    params : Parameters
+    """
+    from o3drbf.pipeline import build_constraints, choose_parameters, remove_outliers
+
+    data, outliers = remove_outliers(data, options.outliers, seed=seed)
+    copts = replace(options.constraints, surface_count=surface_count, surface_radius=None, sphere_count=sphere_count)
+    cset = build_constraints(data, copts, seed=seed, normalization=norm)
+    if support is not None:
+        c = cset.constraints
+        centre, rho = support
+        keep = (c.kind != EXTERIOR) | np.all(np.abs(c.points - centre) < rho, axis=1)
+        cset = replace(cset, constraints=Constraints(c.points[keep], c.values[keep], c.smoothing[keep], c.kind[keep]))
+    params = choose_parameters(data, cset, options.parameters, seed=seed, confidence=outliers.confidence)
+    return data, outliers, cset, params
+
+
+def _fit(cset, params, options: Options, base: ImplicitSurface | None = None):
+    """The robust fit of ``cset`` (of its residual to ``base`` when given), one BLAS thread."""
+    from o3drbf.pipeline import fit_surface
+
+    if base is not None:
+        c = cset.constraints
+        cset = replace(cset, constraints=Constraints(c.points, c.values - base.evaluate_box(c.points), c.smoothing, c.kind))
+    with _single_thread():
+        surface, sol, robust = fit_surface(cset, params, options.fit)
+    return ImplicitSurface(params.kernel, surface.centres, surface.weights, surface.poly, Normalization.identity()), sol, robust, cset
+
+
+def _tile_points(store, norm: Normalization, cameras, settings: dict):
+    """The PointSet of one tile store (data coordinates), with its normals as the whole cloud's check left them."""
+    from o3drbf.pointset import PointSet
+
+    sub, nsub, pcam = read_tile_points(store)
+    if not settings["normals"]:
+        nsub = None
+    elif settings["flip_normals"]:
+        nsub = -nsub
+    if cameras is None or pcam is None or (pcam < 0).all():
+        pcam = None
+    else:
+        pcam = np.where(pcam >= 0, settings["camera_map"][np.maximum(pcam, 0).astype(np.int64)], -1)
+        pcam = None if (pcam < 0).all() else pcam
+    return PointSet.create(norm.inverse(sub), nsub, cameras=cameras, point_camera=pcam, min_count=0), sub
 
 
 def fit_tile(t: int, store=None, base: ImplicitSurface | None = None, partition: Partition | None = None,
-             settings: dict | None = None) -> tuple[ImplicitSurface, dict]:
-    """Fit tile ``t``'s residual g_t (a Dask task; everything in box coordinates).
+             settings: dict | None = None, cameras=None) -> tuple[ImplicitSurface, dict]:
+    """Fit tile ``t``'s residual g_t (a Dask task; the surfaces in box coordinates).
 
     Parameters
     ----------
     t : int
         Tile index.
-    store : str or (points (m, 3), normals (m, 3))
-        The points in the tile's support and their unit normals, normalized:
-        a per-tile file or a pair (:func:`o3drbf.tiles.partition.spread_to_tiles`).
+    store : str or tuple
+        The points in the tile's support (box coordinates), their normals and
+        scanner indices: a per-tile file or arrays (:func:`o3drbf.tiles.partition.spread_to_tiles`).
     base : ImplicitSurface
-        f0 (identity normalization).
+        f0 (identity normalization: box coordinates).
     partition : Partition
     settings : dict
-        Constraint and kernel settings from :func:`fit_tiled`.
+        ``options``, ``normalization``, ``seed`` and how to read the store, from :func:`fit_tiled`.
+    cameras : list of Camera, optional
+        The cameras or scanners (data coordinates).
 
     Returns
     -------
     g : ImplicitSurface
-        The residual fit (zero when the support holds fewer than 10 points).
+        The residual fit (zero when the support holds fewer than 10 points after outlier removal).
     info : dict
-        Counts, spacing, parameters, solver record and seconds.
+        Counts (points, ``owned`` and ``owned_kept``: those in the tile's cell,
+        outliers, constraints), spacing, parameters, solver record and seconds.
     """
+    from o3drbf.pipeline import check_given_normals
+
     t0 = time.perf_counter()
     s = settings
-    sub, nsub = read_tile_points(store)
-    info = {"tile": t, "points": int(len(sub))}
-    if len(sub) < 10:
-        kernel = make_kernel("multiorder", delta=TILE_DEFAULTS["delta"], tau=TILE_DEFAULTS["tau"])
-        g = ImplicitSurface(kernel, partition.centre[t][None], np.zeros(1), np.zeros(1), Normalization.identity())
-        info.update(constraints=0, seconds=time.perf_counter() - t0, method="none")
-        return g, info
+    norm, options = s["normalization"], s["options"]
+    data, box = _tile_points(store, norm, cameras, s)
+    lo, hi = partition.lo[t], partition.hi[t]
+
+    def owned(box_points):
+        return int(np.all((box_points >= lo) & (box_points < hi), axis=1).sum())
+
+    info = {"tile": t, "points": int(len(data)), "owned": owned(box)}
+    del box
     seed = s["seed"] + 1 + t
-    sidx = surface_constraints(sub, count=s["surface_count_per_tile"], seed=seed)
-    surf = sub[sidx]
-    n_ext = int(round(s["exterior_ratio"] * len(sidx)))
-    ext = exterior_from_normals(surf, nsub[sidx], s["exterior_offset"], n_ext, seed=seed, reference=sub)
-    ext = ext[np.all(np.abs(ext - partition.centre[t]) < partition.rho[t], axis=1)]
-    spacing = mean_spacing(surf) if len(surf) > 1 else float("nan")
-    kernel, lam = _kernel_and_lambda(spacing, s["noise"], s["scale"], s["delta"], s["tau"], s["lambda_surface"])
-    c = Constraints.concat(Constraints.of_kind(surf, SURFACE, lam), Constraints.of_kind(ext, EXTERIOR, s["lambda_exterior"] * kernel.value_at_zero))
-    residual = c.values - base.evaluate_box(c.points)
-    c = Constraints(c.points, residual, c.smoothing, c.kind)
-    sol = _solve_single_thread(kernel, c, s["solver"])
-    g = ImplicitSurface(kernel, c.points, sol.weights, sol.poly, Normalization.identity())
-    info.update(
-        constraints=len(c), surface=len(surf), exterior=len(ext), spacing=spacing, delta=kernel.params["delta"],
-        tau=kernel.params["tau"], lambda_surface=lam, method=sol.method, residual=float(sol.residual),
-        max_abs_target=float(np.abs(residual).max()), seconds=time.perf_counter() - t0,
-    )
+    g = None
+    if len(data) >= 10:
+        if data.normals is not None and data.point_camera is not None:  # local rule: each normal toward its own scanner
+            data, _ = check_given_normals(data, seed=seed)
+        try:
+            data, outliers, cset, params = _stages(data, norm, options, s["surface_count_per_tile"], 0, seed,
+                                                   (partition.centre[t], partition.rho[t]))
+        except ValueError as exc:  # fewer than 10 points left: no residual in this tile
+            if "at least 10" not in str(exc):
+                raise
+            log.info("tile %d: %s; its residual is zero", t, exc)
+        else:
+            g, sol, robust, cset = _fit(cset, params, options, base)
+            counts = cset.constraints.counts()
+            res = cset.constraints.values
+            info.update(
+                constraints=len(cset.constraints), surface=counts["surface"], exterior=counts["exterior"], spacing=cset.spacing,
+                delta=params.kernel.params["delta"], tau=params.kernel.params["tau"], lambda_surface=params.lambda_surface,
+                outliers=int(outliers.removed), denoised=int(cset.denoised), noise=float(cset.noise), method=sol.method,
+                residual=float(sol.residual), robust_dropped=0 if robust is None else int(robust["dropped"]),
+                max_abs_target=float(np.abs(res).max()) if len(res) else 0.0)
+    info["owned_kept"] = owned(norm.forward(data.points)) if g is not None else 0
+    if g is None:
+        kernel = make_kernel("multiorder", delta=10.0, tau=0.01)
+        g = ImplicitSurface(kernel, partition.centre[t][None], np.zeros(1), np.zeros(1), Normalization.identity())
+        info.update(constraints=0, method="none", outliers=0, denoised=0)
+    info["seconds"] = time.perf_counter() - t0
     return g, info
 
 
-def point_source(points, normals=None, seed: int = 0):
-    """The points of :func:`fit_tiled` as a chunked source.
+def point_source(points, normals=None, *, cameras=None, point_camera=None, seed: int = 0):
+    """The points of :func:`fit_tiled` as a chunked source, and their cameras.
 
     A :class:`o3drbf.io.files.PlyVertices` (a memory-mapped binary PLY with
-    normals) is used as it is, never loaded whole; arrays or an Open3D cloud
-    are checked and wrapped (normals estimated with Open3D when missing).
+    normals) is used as it is, never loaded whole; arrays, an Open3D cloud or
+    a :class:`o3drbf.pointset.PointSet` are checked and wrapped.  Without
+    normals and without cameras, normals are estimated and oriented with
+    Open3D over the whole cloud (:func:`o3drbf.pipeline.estimate_normals`).
 
     Returns
     -------
-    PlyVertices or ArrayPoints
+    source : PlyVertices or ArrayPoints
+    cameras : list of Camera or None
     """
     from o3drbf.io.files import PlyVertices
+    from o3drbf.pointset import PointSet
 
-    if isinstance(points, ArrayPoints) and normals is None and points.has_normals:
-        return points
+    if isinstance(points, ArrayPoints) and normals is None and point_camera is None:
+        return points, _camera_list(cameras)
     if isinstance(points, PlyVertices):
-        if normals is not None:
-            raise ValueError("normals come from the PLY file's nx, ny, nz; pass normals=None with a PlyVertices source")
-        if not points.has_normals:
-            raise ValueError(f"{points.path} has no normals (nx, ny, nz): the memory-mapped tiled path needs them; "
+        if normals is not None or point_camera is not None:
+            raise ValueError("normals come from the PLY file's nx, ny, nz; pass normals=None and no point_camera with a PlyVertices source")
+        if not points.has_normals and cameras is None:
+            raise ValueError(f"{points.path} has no normals (nx, ny, nz): the memory-mapped tiled path needs them (or cameras); "
                              "read the file into memory instead (normals are then estimated) or add normals")
         if points.count < 10:
             raise ValueError(f"{points.path}: {points.count} points, at least 10 needed")
-        return points
-    cloud_normals = None
-    if hasattr(points, "points") and not isinstance(points, np.ndarray):
-        if getattr(points, "has_normals", lambda: False)():
-            cloud_normals = np.asarray(points.normals)
-    pts = as_points(points, min_count=10)
-    if normals is None:
-        normals = cloud_normals
-    if normals is None:
+        return points, _camera_list(cameras)
+    if isinstance(points, PointSet):
+        if normals is not None or cameras is not None or point_camera is not None:
+            raise ValueError("a PointSet carries its own normals, cameras and point_camera; pass them to PointSet.create")
+        data = points
+    else:
+        data = PointSet.create(points, normals, cameras=cameras, point_camera=point_camera)
+    nrm = data.normals
+    if nrm is None and data.cameras is None:
         from o3drbf.pipeline import estimate_normals
 
         log.info("no normals given: estimating and orienting normals with Open3D (30 neighbours)")
-        normals = estimate_normals(pts, seed=seed)
-    return ArrayPoints(pts, as_vectors(normals, len(pts), name="normals"))
+        nrm = estimate_normals(data.points, seed=seed)
+    return ArrayPoints(data.points, nrm, data.point_camera), data.cameras
 
 
-def fit_tiled(
-    points,
-    normals=None,
-    *,
-    tiles="auto",
-    client=None,
-    workers: int = 2,
-    memory_limit=None,
-    surface_count_per_tile: int | None = TILE_DEFAULTS["surface_count_per_tile"],
-    points_per_tile: int = TILE_DEFAULTS["points_per_tile"],
-    global_count: int = TILE_DEFAULTS["global_count"],
-    overlap: float = TILE_DEFAULTS["overlap"],
-    min_overlap: float = TILE_DEFAULTS["min_overlap"],
-    auto: bool = True,
-    delta: float | None = None,
-    tau: float | None = None,
-    lambda_surface: float | None = None,
-    lambda_exterior: float = TILE_DEFAULTS["lambda_exterior"],
-    exterior_ratio: float = TILE_DEFAULTS["exterior_ratio"],
-    exterior_offset: float = TILE_DEFAULTS["exterior_offset"],
-    sphere_count: int = TILE_DEFAULTS["sphere_count"],
-    solver: str = "auto",
-    partition_sample: int = TILE_DEFAULTS["partition_sample"],
-    chunk_points: int = TILE_DEFAULTS["chunk_points"],
-    tile_dir=None,
-    seed: int = 0,
-    progress: bool = False,
-) -> TiledSurface:
-    """Fit f = f0 + sum_t W_t g_t to points with outward normals, tile by tile.
+def _camera_list(cameras):
+    """The cameras as a list (read from a file when a path), or None."""
+    if cameras is None:
+        return None
+    if isinstance(cameras, (str, bytes)) or hasattr(cameras, "__fspath__"):
+        from o3drbf.cameras.model import load_cameras
+
+        cameras = load_cameras(cameras)
+    cams = list(cameras)
+    if not cams:
+        raise ValueError("cameras is empty; give at least one camera (or None to use normals)")
+    return cams
+
+
+def _sample_points(source, cameras, norm: Normalization, options: Options, seed: int):
+    """The PointSet of f0's sample (data coordinates) and the cameras kept (those inside the data dropped)."""
+    from o3drbf.pipeline import drop_cameras_within_data
+    from o3drbf.pointset import PointSet
+
+    n = source.count
+    index = sample_indices(n, options.tiles.partition_sample, seed)
+    pts, nrm = source.gather(index)
+    pcam = source.point_camera[index] if getattr(source, "point_camera", None) is not None else None
+    data = PointSet.create(pts, nrm if source.has_normals else None, cameras=cameras, point_camera=pcam)
+    if cameras is None:
+        return data, None, None
+    before = len(data.cameras)
+    data, dropped = drop_cameras_within_data(data)
+    camera_map = np.arange(before)
+    if dropped:
+        kept = [k for k in range(before) if not any(lbl.startswith(f"camera {k}") and lbl[len(f"camera {k}"):][:1] in ("", " ")
+                                                        for lbl in dropped)]
+        camera_map = np.full(before, -1)
+        camera_map[kept] = np.arange(len(kept))
+    return data, data.cameras, camera_map
+
+
+def _root_box(norm: Normalization, data_lo, data_hi) -> np.ndarray:
+    """The k-d root box (box coordinates): the points' box padded by ``root_pad`` of its longest side."""
+    box_lo, box_hi = norm.forward(data_lo), norm.forward(data_hi)  # = the min / max of all points in the box
+    pad = TILE_DEFAULTS["root_pad"] * float((box_hi - box_lo).max())
+    return np.array([box_lo - pad, box_hi + pad])
+
+
+def fit_tiled(points, normals=None, *, cameras=None, point_camera=None, options: Options | None = None, client=None,
+              seed: int = 0, progress: bool = False, **option_values) -> TiledSurface:
+    """Fit f = f0 + sum_t W_t g_t tile by tile, with the untiled path's stages on every fit.
 
     Parameters
     ----------
-    points : (N, 3) array_like, open3d.geometry.PointCloud or o3drbf.io.files.PlyVertices
+    points : (N, 3) array_like, open3d.geometry.PointCloud, PointSet or o3drbf.io.files.PlyVertices
         Surface samples (data coordinates), N >= 10.  A ``PlyVertices``
-        (:func:`o3drbf.io.files.open_ply_vertices`, a memory-mapped binary PLY
-        with normals) is read in chunks of ``chunk_points``: this process never
-        holds all the points, and each tile's points go to a file in
-        ``tile_dir`` that its worker reads.
+        (:func:`o3drbf.io.files.open_ply_vertices`, a memory-mapped binary PLY)
+        is read in chunks of ``chunk_points``: this process never holds all
+        the points, and each tile's points go to a file in ``tile_dir`` that
+        its worker reads.
     normals : (N, 3) array_like, optional
-        Outward normals; None: from the cloud or file, else estimated with Open3D
-        (o3drbf.pipeline.estimate_normals).
-    tiles : "auto" or int
-        Number of tiles; "auto": ``ceil(N / points_per_tile)``.
-    client : None, "synchronous", scheduler address or distributed.Client
-        Where tile fits run (:mod:`o3drbf.tiles.cluster`); None starts a
-        LocalCluster of ``workers`` processes when there is more than one tile.
-    workers : int
-        Workers of a LocalCluster started here.
-    memory_limit : int or str, optional
-        Per-worker memory limit of a LocalCluster started here.
-    surface_count_per_tile : int or None
-        Poisson-disc surface constraints per tile support (None: all its points).
-    points_per_tile : int
-        Target points per tile for ``tiles="auto"``.
-    global_count : int
-        Surface constraints of the global fit f0.
-    overlap, min_overlap : float
-        Support margin on each side: ``max(overlap * cell half-size, min_overlap)``
-        (box units for ``min_overlap``).
-    auto : bool
-        Parameters left at None from the automatic rule, applied to each fit's
-        own constraint spacing; else the paper's delta 10, tau 0.01, lambda 1e-3.
-    delta, tau, lambda_surface, lambda_exterior, exterior_ratio, exterior_offset, sphere_count
-        As in :func:`o3drbf.pipeline.reconstruct` (normalized box).
-    solver : {"auto", "dense", "iterative", "fast"}
-        For f0 and every tile.
-    partition_sample : int
-        At most this many points (a seeded uniform subsample, all of them when
-        N is smaller) decide the global steps: the noise estimate, f0's
-        constraints and the k-d cuts (the bounding box uses every point).
-    chunk_points : int
-        Points read and distributed at a time.
-    tile_dir : path, optional
-        Folder for the per-tile point files (storage every worker can read;
-        removed after the fit if created here).  Default: a temporary folder
-        when ``points`` is a file, per-tile arrays sent to each task otherwise.
+        Outward normals; None: from the cloud or file; without them and
+        without cameras, estimated with Open3D (o3drbf.pipeline.estimate_normals).
+    cameras : sequence of Camera, CameraSet or path, optional
+        The cameras or scanners that saw the points: exterior constraints
+        toward them and the free-space outlier test, in every tile and in f0.
+    point_camera : (N,) int array_like, optional
+        The camera of each point (-1 unknown).
+    options : Options, optional
+        All options (:class:`o3drbf.options.Options`); the ``tiles`` group
+        (:class:`o3drbf.options.TileOptions`) sizes the tiles and says where
+        they run, the others act on f0 and on every tile as on the untiled path.
+    client : None, "synchronous", scheduler address or distributed.Client, optional
+        Where tile fits run (:mod:`o3drbf.tiles.cluster`); default the
+        ``scheduler`` option (None: a LocalCluster of ``workers`` processes
+        when there is more than one tile).
     seed : int
         Seeds every random choice (tile t uses ``seed + 1 + t``).
     progress : bool
         One bar tick per finished tile.
+    **option_values
+        Any key of :data:`o3drbf.options.DEFAULTS` over ``options``
+        (``tiles=8``, ``surface_count_per_tile=2000``, ``outliers="none"``, ...).
 
     The result depends only on the points (not on ``chunk_points``, the
     scheduler or whether they came from a file or an array): bit-identical.
@@ -285,89 +366,79 @@ def fit_tiled(
     -------
     TiledSurface
         ``metadata`` holds the per-tile records (``tiles``), per-worker task
-        time and peak memory (``workers``), the extraction
-        ``bounds`` (data box padded by 5 %), parameters and timings.
+        time and peak memory (``workers``), the points read and kept
+        (``points``, ``kept``, ``outliers``), the extraction ``bounds`` (data
+        box padded by 5 %), parameters, timings and CPU seconds per stage (``cpu``).
 
     Raises
     ------
     ValueError
-        Bad points, normals or parameters.
+        Bad points, normals, cameras or options (one line, before any costly step).
+
+    Examples
+    --------
+    >>> from o3drbf.synthetic.shapes import Torus
+    >>> from o3drbf.tiles.fit import fit_tiled
+    >>> pts, nrm = Torus(0.7, 0.25).sample(2000, seed=1)
+    >>> surface = fit_tiled(pts, nrm, tiles=2, scheduler="synchronous", global_count=300, surface_count_per_tile=500)
+    >>> len(surface.tiles), bool(abs(surface(pts)).max() < 0.01)
+    (2, True)
     """
-    t_start = time.perf_counter()
-    source = point_source(points, normals, seed=seed)
-    n = source.count
-    count = tile_count(n, tiles, points_per_tile)
-    partition_sample = check_number("partition_sample", partition_sample, low=100, integer=True)
-    chunk_points = check_number("chunk_points", chunk_points, low=1, integer=True)
-    if surface_count_per_tile is not None:
-        surface_count_per_tile = check_number("surface_count_per_tile", surface_count_per_tile, low=10, integer=True)
-    global_count = check_number("global_count", global_count, low=10, integer=True)
-    lambda_exterior = check_number("lambda_exterior", lambda_exterior, low=0.0)
-    exterior_ratio = check_number("exterior_ratio", exterior_ratio, low=0.0, high=1.0)
-    exterior_offset = check_number("exterior_offset", exterior_offset, low=0.0, high=0.5, low_open=True)
-    sphere_count = check_number("sphere_count", sphere_count, low=0, high=100000, integer=True)
-    for name, v in (("delta", delta), ("tau", tau), ("lambda_surface", lambda_surface)):
-        if v is not None:
-            check_number(name, v, low=0.0)
+    opts = tile_options(options, **option_values)
     seed = check_number("seed", seed, low=0, integer=True)
+    to = opts.tiles
+    t_start, cpu = time.perf_counter(), {"start": time.process_time()}
+    source, camera_list = point_source(points, normals, cameras=cameras, point_camera=point_camera, seed=seed)
+    n = source.count
+    count = tile_count(n, to.tiles, to.points_per_tile)
 
     # One pass for the bounding box, one gather for the sample: never all the points at once.
-    data_lo, data_hi = scan_bounds(source, chunk_points)
+    data_lo, data_hi = scan_bounds(source, to.chunk_points)
     norm = Normalization.from_points(np.array([data_lo, data_hi]))
-    sample_pts, nrm = source.gather(sample_indices(n, partition_sample, seed))
-    box = norm.forward(sample_pts)
-    del sample_pts
-    noise = None
-    if auto and None in (delta, tau, lambda_surface):
-        from o3drbf.constraints.parameters import estimate_noise
+    sample, camera_list, camera_map = _sample_points(source, camera_list, norm, opts, seed)
+    cells_lo, cells_hi = kd_split(norm.forward(sample.points), count, _root_box(norm, data_lo, data_hi))
+    # f0 is coarse: its stages run on a seeded subsample of the sample (outlier rules and noise are relative to the spacing).
+    sample = sample.subset(sample_indices(len(sample), TILE_DEFAULTS["base_points_per_constraint"] * to.global_count, seed + 1))
+    cpu["prepare"] = time.process_time() - cpu.pop("start")
 
-        noise = estimate_noise(box, seed=seed)
+    # f0: the untiled stages on the sample, fitted here.
+    from o3drbf.pipeline import check_given_normals
 
-    # f0: the normal path's constraints on a global subsample, fitted here.
-    t0 = time.perf_counter()
-    idx0 = surface_constraints(box, count=global_count, seed=seed)
-    surf0 = box[idx0]
-    ext0 = exterior_from_normals(surf0, nrm[idx0], exterior_offset, int(round(exterior_ratio * len(idx0))), seed=seed, reference=box)
-    box_lo, box_hi = norm.forward(data_lo), norm.forward(data_hi)  # = the min / max of all points in the box
-    sph = bounding_sphere(np.array([box_lo, box_hi]), sphere_count)
-    spacing0 = mean_spacing(surf0)
-    kernel0, lam0 = _kernel_and_lambda(spacing0, noise, norm.scale, delta, tau, lambda_surface)
-    c0 = Constraints.concat(
-        Constraints.of_kind(surf0, SURFACE, lam0),
-        Constraints.of_kind(ext0, EXTERIOR, lambda_exterior * kernel0.value_at_zero),
-        Constraints.of_kind(sph, SPHERE, lambda_exterior * kernel0.value_at_zero),
-    )
-    sol0 = _solve_single_thread(kernel0, c0, solver)
-    base = ImplicitSurface(kernel0, c0.points, sol0.weights, sol0.poly, Normalization.identity())
-    t_base = time.perf_counter() - t0
-    log.info("tiles: global fit f0 on %d constraints (%s, %r) in %.1f s", len(c0), sol0.method, kernel0, t_base)
+    t0, u0 = time.perf_counter(), time.process_time()
+    sample, normal_check = check_given_normals(sample, seed=seed)
+    flip = normal_check is not None and normal_check.changed and "flipped" in normal_check.action.split(" + ")
+    if normal_check is not None and normal_check.changed and "re-oriented" in normal_check.action:
+        log.warning("tiles: the given normals disagree between neighbours (%s); f0 uses them re-oriented, the tiles as given",
+                    normal_check.reason)
+    sample, outliers0, cset0, params0 = _stages(sample, norm, opts, to.global_count, opts.constraints.sphere_count, seed)
+    base, sol0, robust0, cset0 = _fit(cset0, params0, opts)
+    t_base, cpu["base"] = time.perf_counter() - t0, time.process_time() - u0
+    log.info("tiles: global fit f0 on %d constraints (%s, %r) in %.1f s", len(cset0.constraints), sol0.method, params0.kernel, t_base)
 
-    pad = TILE_DEFAULTS["root_pad"] * float((box_hi - box_lo).max())
-    root = np.array([box_lo - pad, box_hi + pad])
-    cells_lo, cells_hi = kd_split(box, count, root)
-    partition = Partition.from_cells(cells_lo, cells_hi, overlap=overlap, min_overlap=min_overlap)
-    settings = {
-        "seed": seed, "surface_count_per_tile": surface_count_per_tile, "exterior_ratio": exterior_ratio,
-        "exterior_offset": exterior_offset, "lambda_exterior": lambda_exterior, "noise": noise, "scale": norm.scale,
-        "delta": delta, "tau": tau, "lambda_surface": lambda_surface, "solver": solver,
-    }
-    del box, nrm
+    partition = Partition.from_cells(cells_lo, cells_hi, overlap=to.overlap, min_overlap=to.min_overlap)
+    del sample
+    task_options = replace(opts, tiles=replace(to, scheduler=None))  # a client object does not travel to the workers
+    settings = {"seed": seed, "surface_count_per_tile": to.surface_count_per_tile, "options": task_options, "normalization": norm,
+                "normals": bool(source.has_normals), "flip_normals": bool(flip), "camera_map": camera_map}
     from o3drbf.io.files import PlyVertices
 
+    tile_dir = to.tile_dir
     made_dir = None
     if tile_dir is None and isinstance(source, PlyVertices):
         import tempfile
 
         tile_dir = made_dir = tempfile.mkdtemp(prefix="o3drbf-tiles-")
-    t0 = time.perf_counter()
+    t0, u0 = time.perf_counter(), time.process_time()
     records: list = []
+    run_on = client if client is not None else to.scheduler
     try:
-        stores, _ = spread_to_tiles(source, norm, partition, chunk_points, folder=tile_dir)
-        t_spread = time.perf_counter() - t0
+        stores, _ = spread_to_tiles(source, norm, partition, to.chunk_points, folder=tile_dir)
+        t_spread, cpu["spread"] = time.perf_counter() - t0, time.process_time() - u0
+        u0 = time.process_time()
         log.info("tiles: %d points spread over %d tiles in %.1f s (%s)", n, count, t_spread,
                  "per-tile arrays" if tile_dir is None else f"files in {tile_dir}")
-        with tile_client(client, tasks=count, workers=workers, memory_limit=memory_limit) as c:
-            results = run_tasks(c, fit_tile, count, {"base": base, "partition": partition, "settings": settings},
+        with tile_client(run_on, tasks=count, workers=to.workers, memory_limit=to.memory_limit) as c:
+            results = run_tasks(c, fit_tile, count, {"base": base, "partition": partition, "settings": settings, "cameras": camera_list},
                                 per_task=[{"store": st} for st in stores], records=records,
                                 progress=progress, desc="fitting tiles")
         del stores
@@ -376,28 +447,41 @@ def fit_tiled(
             import shutil
 
             shutil.rmtree(made_dir, ignore_errors=True)
-    t_tiles = time.perf_counter() - t0
+    t_tiles, cpu["tiles_client"] = time.perf_counter() - t0, time.process_time() - u0
+    cpu["tiles_tasks"] = float(sum(r["cpu"] for r in records))
     infos = [info for _, info in results]
     for info in infos:
-        log.info("tile %d: %d points, %d constraints, %.1f s", info["tile"], info["points"], info["constraints"], info["seconds"])
+        log.info("tile %d: %d points (%d outliers), %d constraints, %.1f s", info["tile"], info["points"], info["outliers"],
+                 info["constraints"], info["seconds"])
+    kept = int(sum(i["owned_kept"] for i in infos))
+    owned = int(sum(i["owned"] for i in infos))
     dpad = 0.05 * float((data_hi - data_lo).max())
+    c0 = cset0.constraints
     metadata = {
         "points": n,
+        "kept": kept,
+        "outliers": owned - kept,
+        "denoised_tiles": int(sum(1 for i in infos if i.get("denoised"))),
+        "cameras": 0 if camera_list is None else len(camera_list),
+        "normals_flipped": bool(flip),
         "tile_count": count,
         "tiles": infos,
-        "base": {"constraints": len(c0), "counts": c0.counts(), "spacing": spacing0, "delta": kernel0.params["delta"],
-                 "tau": kernel0.params["tau"], "lambda_surface": lam0, "method": sol0.method, "seconds": t_base},
-        "noise": noise,
-        "lambda_exterior": lambda_exterior,
-        "exterior_offset": exterior_offset,
+        "base": {"constraints": len(c0), "counts": c0.counts(), "spacing": cset0.spacing, "delta": params0.kernel.params["delta"],
+                 "tau": params0.kernel.params["tau"], "lambda_surface": params0.lambda_surface, "method": sol0.method,
+                 "outliers": int(outliers0.removed), "outlier_reason": outliers0.reason, "denoised": int(cset0.denoised),
+                 "seconds": t_base},
+        "noise": float(cset0.noise) if np.isfinite(cset0.noise) else None,
+        "lambda_exterior": params0.lambda_exterior,
+        "exterior_offset": opts.constraints.exterior_offset,
         "seed": seed,
         "bounds": [(data_lo - dpad).tolist(), (data_hi + dpad).tolist()],
-        "overlap": overlap,
-        "min_overlap": min_overlap,
-        "partition_sample": int(min(n, partition_sample)),
+        "overlap": to.overlap,
+        "min_overlap": to.min_overlap,
+        "partition_sample": int(min(n, to.partition_sample)),
         "workers": worker_summary(records),
         "spread_seconds": t_spread,
         "tiles_seconds": t_tiles,
+        "cpu": cpu,
         "total_seconds": time.perf_counter() - t_start,
     }
     return TiledSurface(base, [g for g, _ in results], partition, norm, metadata)

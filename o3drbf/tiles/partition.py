@@ -215,10 +215,12 @@ class ArrayPoints:
     ----------
     points : (N, 3) array
     normals : (N, 3) array or None
+    point_camera : (N,) int array or None
+        The camera of each point (-1 unknown).
     """
 
-    def __init__(self, points: np.ndarray, normals: np.ndarray | None):
-        self.points, self.normals = points, normals
+    def __init__(self, points: np.ndarray, normals: np.ndarray | None, point_camera: np.ndarray | None = None):
+        self.points, self.normals, self.point_camera = points, normals, point_camera
         self.count = len(points)
         self.has_normals = normals is not None
 
@@ -275,7 +277,8 @@ def spread_to_tiles(source, normalization, partition: "Partition", chunk: int, f
     Parameters
     ----------
     source : PlyVertices or ArrayPoints
-        Points with normals, data coordinates.
+        Points (data coordinates), their normals (or None) and, for
+        ``ArrayPoints``, each point's camera (``point_camera`` or None).
     normalization : Normalization
         Data -> box map.
     partition : Partition
@@ -288,8 +291,9 @@ def spread_to_tiles(source, normalization, partition: "Partition", chunk: int, f
     Returns
     -------
     stores : list
-        Per tile: the path (str) of a float64 file of (m, 6) rows ``x y z nx ny nz``
-        (read it with :func:`read_tile_points`), or a ``(points, normals)`` pair.
+        Per tile: the path (str) of a float64 file of (m, 7) rows
+        ``x y z nx ny nz camera`` (normals 0 without them, camera -1 when
+        unknown; read it with :func:`read_tile_points`), or the same (m, 7) array.
     counts : (T,) int array
         Points per tile.
 
@@ -307,8 +311,13 @@ def spread_to_tiles(source, normalization, partition: "Partition", chunk: int, f
         paths = [str(folder / f"tile-{t:05d}.f8") for t in range(count)]
         for p in paths:
             open(p, "wb").close()
-    for _, pts, nrm in source.chunks(chunk):
+    cameras = getattr(source, "point_camera", None)
+    for start, pts, nrm in source.chunks(chunk):
         box = normalization.forward(pts)
+        rows = np.empty((len(box), STORE_COLUMNS))
+        rows[:, :3] = box
+        rows[:, 3:6] = 0.0 if nrm is None else nrm
+        rows[:, 6] = -1.0 if cameras is None else cameras[start:start + len(box)]
         # Sorted along each axis once per chunk: each tile tests only the points of its support's
         # thinnest slab (fewest points) on one axis.
         orders = [np.argsort(box[:, k], kind="stable") for k in range(3)]
@@ -323,28 +332,30 @@ def spread_to_tiles(source, normalization, partition: "Partition", chunk: int, f
                 continue
             counts[t] += idx.size
             if paths is None:
-                parts[t].append((box[idx], nrm[idx]))
+                parts[t].append(rows[idx])
             else:
                 with open(paths[t], "ab") as fh:
-                    np.ascontiguousarray(np.hstack([box[idx], nrm[idx]]), dtype="<f8").tofile(fh)
+                    np.ascontiguousarray(rows[idx], dtype="<f8").tofile(fh)
     if paths is not None:
         return paths, counts
     stores = []
     for t in range(count):
-        if parts[t]:
-            stores.append((np.concatenate([a for a, _ in parts[t]]), np.concatenate([b for _, b in parts[t]])))
-        else:
-            stores.append((np.zeros((0, 3)), np.zeros((0, 3))))
+        stores.append(np.concatenate(parts[t]) if parts[t] else np.zeros((0, STORE_COLUMNS)))
         parts[t] = None
     return stores, counts
 
 
-def read_tile_points(store) -> tuple[np.ndarray, np.ndarray]:
-    """(points (m, 3), normals (m, 3)) of one tile store from :func:`spread_to_tiles` (a path or a pair)."""
+#: Columns of a tile store: x y z (box), nx ny nz, camera index.
+STORE_COLUMNS = 7
+
+
+def read_tile_points(store) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(points (m, 3), normals (m, 3), camera (m,) int) of one tile store from :func:`spread_to_tiles` (a path or an array)."""
     if isinstance(store, str):
         rows = np.fromfile(store, dtype="<f8")
-        if rows.size % 6:
-            raise RuntimeError(f"tile store {store} is truncated ({rows.size} values, not rows of 6); rerun the fit")
-        rows = rows.reshape(-1, 6).astype(float)
-        return rows[:, :3].copy(), rows[:, 3:].copy()
-    return store
+        if rows.size % STORE_COLUMNS:
+            raise RuntimeError(f"tile store {store} is truncated ({rows.size} values, not rows of {STORE_COLUMNS}); rerun the fit")
+        rows = rows.reshape(-1, STORE_COLUMNS).astype(float)
+    else:
+        rows = np.asarray(store, dtype=float).reshape(-1, STORE_COLUMNS)
+    return rows[:, :3].copy(), rows[:, 3:6].copy(), rows[:, 6].astype(np.int64)

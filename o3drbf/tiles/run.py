@@ -37,69 +37,68 @@ def tiles_argument(text: str):
     return count_or_auto(text)
 
 
-def reconstruct_tiled(
-    points,
-    normals=None,
-    *,
-    tiles="auto",
-    scheduler=None,
-    workers: int = 2,
-    memory_limit=None,
-    resolution: int | None = 128,
-    voxel_size: float | None = None,
-    bounds=None,
-    seed: int = 0,
-    progress: bool = False,
-    **fit_options,
-) -> tuple[TiledSurface, object, dict]:
-    """Tiled fit and tiled marching cubes on the same client.
+def reconstruct_tiled(points, normals=None, *, cameras=None, point_camera=None, options=None, seed: int = 0, progress: bool = False,
+                      **option_values) -> tuple[TiledSurface, object, dict]:
+    """Tiled fit and tiled marching cubes on the same client, with the untiled path's stages in every fit.
 
     Parameters
     ----------
-    points : (N, 3) array_like or o3drbf.io.files.PlyVertices
+    points : (N, 3) array_like, PointSet or o3drbf.io.files.PlyVertices
         A memory-mapped binary PLY (with normals) is read in chunks, never whole.
     normals : (N, 3) array_like, optional
-    tiles : "auto" or int
-    scheduler : None, "synchronous" or a Dask scheduler address
-        None: a LocalCluster of ``workers`` processes when there is more than one tile.
-    workers : int
-    memory_limit : int or str, optional
-        Per-worker memory limit of a LocalCluster started here (default 80 % of
-        the available memory divided among the workers).
-    resolution, voxel_size, bounds
-        As in :func:`o3drbf.tiles.extract.extract_tiled`.
-    seed, progress
-    **fit_options
-        Passed to :func:`o3drbf.tiles.fit.fit_tiled`.
+    cameras : sequence of Camera, CameraSet or path, optional
+        Cameras or scanners: free space (exterior constraints, outliers) as on the untiled path.
+    point_camera : (N,) int array_like, optional
+    options : Options, optional
+        All options (:class:`o3drbf.options.Options`): the ``tiles`` group
+        sizes the tiles and says where they run (``scheduler``: None a
+        LocalCluster of ``workers`` processes when there is more than one
+        tile, "synchronous", or an address), ``extract`` the lattice, the
+        others each fit (:func:`o3drbf.tiles.fit.fit_tiled`).
+    seed : int
+    progress : bool
+    **option_values
+        Keys of :data:`o3drbf.options.DEFAULTS` over ``options`` (``tiles=8``, ``resolution=256``, ...).
 
     Returns
     -------
     surface : TiledSurface
     mesh : open3d.geometry.TriangleMesh
     stats : dict
-        ``tiles``, ``points``, ``constraints`` (per tile: ``min``, ``median``,
-        ``max``), ``overlap`` and ``min_overlap`` (the blend margin: a fraction
-        of each cell's half-size, at least ``min_overlap`` box units),
-        ``fit_seconds``, ``extract_seconds``, ``workers`` (per worker: ``tasks``,
-        ``seconds`` of task time and ``peak_rss`` bytes, measured on the worker
-        during the fit and the meshing), the extraction record, ``vertices``, ``triangles``.
-    """
-    from o3drbf.options import TILE_DEFAULTS
+        ``tiles``, ``points`` (read), ``kept`` and ``outliers`` (each point
+        counted in the tile whose cell holds it), ``constraints`` (per tile:
+        ``min``, ``median``, ``max``), ``denoised_tiles``, ``cameras``,
+        ``overlap`` and ``min_overlap``, ``fit_seconds``, ``extract_seconds``,
+        ``workers`` (per worker: ``tasks``, ``seconds`` of task time and
+        ``peak_rss`` bytes, measured on the worker during the fit and the
+        meshing), the extraction record, ``vertices``, ``triangles``.
 
-    source = point_source(points, normals, seed=seed)
-    count = tile_count(source.count, tiles, fit_options.get("points_per_tile", TILE_DEFAULTS["points_per_tile"]))
-    with tile_client(scheduler, tasks=count, workers=workers, memory_limit=memory_limit) as client:
+    Examples
+    --------
+    >>> from o3drbf.synthetic.shapes import Torus
+    >>> from o3drbf.tiles.run import reconstruct_tiled
+    >>> pts, nrm = Torus(0.7, 0.25).sample(2000, seed=1)
+    >>> surface, mesh, stats = reconstruct_tiled(pts, nrm, tiles=2, scheduler="synchronous", resolution=32, global_count=300)
+    >>> stats["tiles"], stats["kept"], mesh.is_watertight()
+    (2, 2000, True)
+    """
+    from o3drbf.tiles.fit import tile_options
+
+    opts = tile_options(options, **option_values)
+    source, camera_list = point_source(points, normals, cameras=cameras, point_camera=point_camera, seed=seed)
+    count = tile_count(source.count, opts.tiles.tiles, opts.tiles.points_per_tile)
+    with tile_client(opts.tiles.scheduler, tasks=count, workers=opts.tiles.workers, memory_limit=opts.tiles.memory_limit) as client:
         run_on = "synchronous" if client is None else client
         t0 = time.perf_counter()
-        surface = fit_tiled(source, tiles=count, client=run_on, seed=seed, progress=progress, **fit_options)
+        surface = fit_tiled(source, cameras=camera_list, options=opts, tiles=count, client=run_on, seed=seed, progress=progress)
         t1 = time.perf_counter()
         extraction = {}
-        mesh = extract_tiled(surface, resolution=resolution, voxel_size=voxel_size, bounds=bounds, client=run_on,
-                             progress=progress, stats=extraction)
+        mesh = extract_tiled(surface, opts, client=run_on, progress=progress, stats=extraction)
         t2 = time.perf_counter()
     meta = surface.metadata
     cons = np.array([t["constraints"] for t in meta["tiles"]])
-    stats = {"tiles": count, "points": int(source.count),
+    stats = {"tiles": count, "points": int(source.count), "kept": int(meta["kept"]), "outliers": int(meta["outliers"]),
+             "denoised_tiles": int(meta["denoised_tiles"]), "cameras": int(meta["cameras"]),
              "constraints": {"min": int(cons.min()), "median": float(np.median(cons)), "max": int(cons.max())},
              "overlap": float(meta["overlap"]), "min_overlap": float(meta["min_overlap"]),
              "fit_seconds": t1 - t0, "extract_seconds": t2 - t1, "extraction": extraction,

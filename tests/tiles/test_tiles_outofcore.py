@@ -92,7 +92,7 @@ def test_tiled_fit_from_a_file_equals_the_fit_from_the_array(tmp_path):
     # The tiles really read files: one per tile, holding the points of its support (6 doubles each).
     files = sorted(store.glob("tile-*.f8"))
     assert len(files) == 3
-    sizes = [f.stat().st_size // 48 for f in files]
+    sizes = [f.stat().st_size // 56 for f in files]
     assert sizes == [t["points"] for t in from_file.metadata["tiles"]]
     assert sum(sizes) > len(pts)  # supports overlap
     # With the sample smaller than N the partition still covers every point (root box from the full bounds).
