@@ -125,7 +125,15 @@ def in_process(target, *args):
     q = ctx.Queue()
     p = ctx.Process(target=target, args=(*args, q))
     p.start()
-    out = q.get()
+    import queue
+
+    while True:  # a child that dies (Open3D's Poisson has segfaulted here) must not leave this waiting forever
+        try:
+            out = q.get(timeout=5)
+            break
+        except queue.Empty:
+            if not p.is_alive():
+                raise RuntimeError(f"{target.__name__} died with exit code {p.exitcode} before returning a result")
     p.join()
     return out
 

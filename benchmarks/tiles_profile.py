@@ -47,6 +47,8 @@ def main(argv=None) -> int:
     ap.add_argument("--resolution", default="256")
     ap.add_argument("--json", metavar="FILE", help="append the record as one line of JSON")
     ap.add_argument("--label", default="")
+    ap.add_argument("--option", action="append", default=[], metavar="NAME=VALUE",
+                    help="an option of reconstruct_tiled (a key of o3drbf.options.DEFAULTS; the value read as Python)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     import distributed
@@ -61,13 +63,16 @@ def main(argv=None) -> int:
     write_points(path, pts, nrm)
     del pts, nrm
     resolution = args.resolution if args.resolution == "auto" else int(args.resolution)
+    import ast
+
+    extra = {k: ast.literal_eval(v) for k, v in (o.split("=", 1) for o in args.option)}
     cluster = distributed.LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True, memory_limit="8GiB",
                                        dashboard_address=":0")
     client = distributed.Client(cluster)
     try:
         before = client.run(_cpu)
         c0, t0 = _cpu(), time.perf_counter()
-        surface, mesh, stats = reconstruct_tiled(open_ply_vertices(path), scheduler=client, resolution=resolution)
+        surface, mesh, stats = reconstruct_tiled(open_ply_vertices(path), scheduler=client, resolution=resolution, **extra)
         wall = time.perf_counter() - t0
         client_cpu = _cpu() - c0
         after = client.run(_cpu)
@@ -104,7 +109,7 @@ def main(argv=None) -> int:
           f"mesh {stats['triangles']:,} triangles; mean |SDF| {d.mean():.5f}, p99 {np.percentile(d, 99):.5f}; "
           f"watertight {mesh.is_watertight()}; load {open('/proc/loadavg').read().split()[:3]}")
     if args.json:
-        rec = {"label": args.label, "points": args.points, "tiles": stats["tiles"], "workers": args.workers, "resolution": resolution,
+        rec = {"label": args.label, "options": extra, "points": args.points, "tiles": stats["tiles"], "workers": args.workers, "resolution": resolution,
                "cpu": rows, "total_cpu": total, "wall": wall, "constraints": cons, "evaluated": stats["extraction"]["evaluated"],
                "triangles": stats["triangles"], "mean_sdf": float(d.mean()), "p99_sdf": float(np.percentile(d, 99))}
         with open(args.json, "a") as fh:
