@@ -117,3 +117,33 @@ def test_docstring_examples_of_the_tiled_entry_points_run():
     for module in (o3drbf.tiles.fit, o3drbf.tiles.extract, o3drbf.tiles.run):
         result = doctest.testmod(module)
         assert result.attempted > 0 and result.failed == 0, module.__name__
+
+
+def test_tiled_camera_at_a_surface_point_is_dropped_in_every_tile(caplog):
+    """As untiled (tests/test_faults.py): the camera is dropped once, from the sample, and its points' camera index
+    is remapped in every tile (the other cameras keep theirs)."""
+    from o3drbf.cameras.model import Camera
+    from o3drbf.synthetic.scans import camera_ring
+    from o3drbf.synthetic.shapes import Sphere
+    from o3drbf.tiles.run import reconstruct_tiled
+
+    points, _ = Sphere(1.0).sample(3000, seed=2)
+    cams = camera_ring((0, 0, 0), 1.0, n_views=6, elevation=35, width=80, height=60, fov=50) + camera_ring(
+        (0, 0, 0), 1.0, n_views=6, elevation=-35, width=80, height=60, fov=50, azimuth=30)
+    bad = Camera.from_center(points[0], name="bad")
+    centres = np.array([c.center for c in cams])
+    pc = np.argmin(((points[:, None] - centres[None]) ** 2).sum(-1), axis=1)
+    pc[np.linalg.norm(points - points[0], axis=1) < 0.5] = 0  # seen by the bad camera, listed first
+    pc[np.linalg.norm(points - points[0], axis=1) >= 0.5] += 1
+    with caplog.at_level("WARNING", logger="o3drbf"):
+        surface, mesh, stats = reconstruct_tiled(points, cameras=[bad] + cams, point_camera=pc, tiles=3, scheduler="synchronous",
+                                                 resolution=32, surface_count_per_tile=500, global_count=400)
+    assert "camera 0 (bad) lies 0 point spacings from a data point" in caplog.text
+    assert stats["cameras"] == 12 and stats["outliers"] <= 3
+    from o3drbf import reconstruct
+
+    ref = reconstruct(points, cameras=[bad] + cams, point_camera=pc, surface_count=1000, resolution=32)
+    radial = {name: np.abs(np.linalg.norm(np.asarray(m.vertices), axis=1) - 1.0).max() for name, m in (("tiled", mesh), ("untiled", ref.mesh))}
+    print("largest radial error", radial, "outliers", stats["outliers"], ref.report.outliers_removed)
+    assert mesh.is_watertight() and len(mesh.cluster_connected_triangles()[1]) == 1
+    assert radial["tiled"] < 1.5 * radial["untiled"]

@@ -19,7 +19,7 @@ log = logging.getLogger("o3drbf")
 
 
 def build_constraints(data: PointSet, options: ConstraintOptions = ConstraintOptions(), *, seed: int = 0,
-                      normalization: Normalization | None = None) -> ConstraintSet:
+                      normalization: Normalization | None = None, occluder=None) -> ConstraintSet:
     """Surface, exterior and sphere constraints in the normalized box.
 
     Surface constraints are a Poisson-disc subset of the points; exterior
@@ -38,6 +38,10 @@ def build_constraints(data: PointSet, options: ConstraintOptions = ConstraintOpt
         The data -> box map (default: the points' own, :meth:`Normalization.from_points`);
         a tile of a larger cloud passes the whole cloud's, so that its
         constraints, offsets and noise are in the box of the whole.
+    occluder : (K, 3) array_like, optional
+        The points (data coordinates) that block the cameras' view when
+        exterior constraints are placed (default the data's points; a tile
+        adds points of the whole cloud outside it).
 
     Returns
     -------
@@ -89,7 +93,7 @@ def build_constraints(data: PointSet, options: ConstraintOptions = ConstraintOpt
         try:
             ext_data, info = exterior_constraints(
                 norm.inverse(surf), data.cameras, offset=options.exterior_offset / norm.scale, ratio=max(options.exterior_ratio, 1e-9),
-                seed=seed, occluder=pts, point_camera=None if data.point_camera is None else data.point_camera[idx],
+                seed=seed, occluder=pts if occluder is None else occluder, point_camera=None if data.point_camera is None else data.point_camera[idx],
             )
         except ValueError as exc:
             if data.camera_source:

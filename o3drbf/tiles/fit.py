@@ -110,8 +110,12 @@ def _single_thread():
     return threadpool_limits(limits=1)
 
 
-def _stages(data, norm: Normalization, options: Options, surface_count, sphere_count: int, seed: int, support=None):
+def _stages(data, norm: Normalization, options: Options, surface_count, sphere_count: int, seed: int, support=None, occluders=None):
     """The untiled stages from outliers to parameters on ``data``, in the box ``norm``.
+
+    ``occluders`` (box coordinates): points of the whole cloud that also block the cameras' view (those
+    outside ``support`` are added to the kept points), so that a tile places no exterior constraint toward
+    a camera hidden by a part of the surface outside it.
 
     Returns
     -------
@@ -126,7 +130,17 @@ def _stages(data, norm: Normalization, options: Options, surface_count, sphere_c
 
     data, outliers = remove_outliers(data, options.outliers, seed=seed)
     copts = replace(options.constraints, surface_count=surface_count, surface_radius=None, sphere_count=sphere_count)
-    cset = build_constraints(data, copts, seed=seed, normalization=norm)
+    occluder = None
+    if occluders is not None and data.cameras is not None and support is not None:
+        outside = np.any(np.abs(occluders - support[0]) >= support[1], axis=1)
+        occluder = np.concatenate([data.points, norm.inverse(occluders[outside])])
+    try:
+        cset = build_constraints(data, copts, seed=seed, normalization=norm, occluder=occluder)
+    except ValueError as exc:  # a camera the rest of the cloud hides from this whole tile
+        if occluder is None or "see no point" not in str(exc):
+            raise
+        data = _seen_cameras_only(data, occluder)
+        cset = build_constraints(data, copts, seed=seed, normalization=norm, occluder=occluder)
     if support is not None:
         c = cset.constraints
         centre, rho = support
@@ -134,6 +148,19 @@ def _stages(data, norm: Normalization, options: Options, surface_count, sphere_c
         cset = replace(cset, constraints=Constraints(c.points[keep], c.values[keep], c.smoothing[keep], c.kind[keep]))
     params = choose_parameters(data, cset, options.parameters, seed=seed, confidence=outliers.confidence)
     return data, outliers, cset, params
+
+
+def _seen_cameras_only(data, occluder):
+    """``data`` with only the cameras that see at least one of its points past ``occluder`` (their indices remapped)."""
+    from o3drbf.constraints.visibility import visibility
+
+    seen = visibility(data.points, data.cameras, occluder=occluder, point_camera=data.point_camera, strict=False).any(axis=0)
+    if seen.all() or not seen.any():
+        return data
+    new = np.where(seen, np.cumsum(seen) - 1, -1)
+    pcam = None if data.point_camera is None else np.where(data.point_camera >= 0, new[np.maximum(data.point_camera, 0)], -1)
+    log.info("tile: %d of %d cameras see none of its points past the rest of the cloud; left out here", int((~seen).sum()), len(seen))
+    return replace(data, cameras=[c for c, k in zip(data.cameras, seen) if k], point_camera=pcam, _cache=data._cache)
 
 
 def _fit(cset, params, options: Options, base: ImplicitSurface | None = None):
@@ -166,7 +193,7 @@ def _tile_points(store, norm: Normalization, cameras, settings: dict):
 
 
 def fit_tile(t: int, store=None, base: ImplicitSurface | None = None, partition: Partition | None = None,
-             settings: dict | None = None, cameras=None) -> tuple[ImplicitSurface, dict]:
+             settings: dict | None = None, cameras=None, occluders=None) -> tuple[ImplicitSurface, dict]:
     """Fit tile ``t``'s residual g_t (a Dask task; the surfaces in box coordinates).
 
     Parameters
@@ -183,6 +210,8 @@ def fit_tile(t: int, store=None, base: ImplicitSurface | None = None, partition:
         ``options``, ``normalization``, ``seed`` and how to read the store, from :func:`fit_tiled`.
     cameras : list of Camera, optional
         The cameras or scanners (data coordinates).
+    occluders : (K, 3) array, optional
+        With cameras: a sample of the whole cloud (box coordinates) that blocks their view too.
 
     Returns
     -------
@@ -212,7 +241,7 @@ def fit_tile(t: int, store=None, base: ImplicitSurface | None = None, partition:
             data, _ = check_given_normals(data, seed=seed)
         try:
             data, outliers, cset, params = _stages(data, norm, options, s["surface_count_per_tile"], 0, seed,
-                                                   (partition.centre[t], partition.rho[t]))
+                                                   (partition.centre[t], partition.rho[t]), occluders)
         except ValueError as exc:  # fewer than 10 points left: no residual in this tile
             if "at least 10" not in str(exc):
                 raise
@@ -305,14 +334,11 @@ def _sample_points(source, cameras, norm: Normalization, options: Options, seed:
     data = PointSet.create(pts, nrm if source.has_normals else None, cameras=cameras, point_camera=pcam)
     if cameras is None:
         return data, None, None
-    before = len(data.cameras)
-    data, dropped = drop_cameras_within_data(data)
-    camera_map = np.arange(before)
-    if dropped:
-        kept = [k for k in range(before) if not any(lbl.startswith(f"camera {k}") and lbl[len(f"camera {k}"):][:1] in ("", " ")
-                                                        for lbl in dropped)]
-        camera_map = np.full(before, -1)
-        camera_map[kept] = np.arange(len(kept))
+    given = data.cameras
+    data, _ = drop_cameras_within_data(data)
+    camera_map = np.full(len(given), -1)  # index among the given cameras -> among those kept (-1: dropped)
+    for new, camera in enumerate(data.cameras):
+        camera_map[next(k for k, c in enumerate(given) if c is camera)] = new
     return data, data.cameras, camera_map
 
 
@@ -396,7 +422,10 @@ def fit_tiled(points, normals=None, *, cameras=None, point_camera=None, options:
     data_lo, data_hi = scan_bounds(source, to.chunk_points)
     norm = Normalization.from_points(np.array([data_lo, data_hi]))
     sample, camera_list, camera_map = _sample_points(source, camera_list, norm, opts, seed)
-    cells_lo, cells_hi = kd_split(norm.forward(sample.points), count, _root_box(norm, data_lo, data_hi))
+    sample_box = norm.forward(sample.points)
+    cells_lo, cells_hi = kd_split(sample_box, count, _root_box(norm, data_lo, data_hi))
+    occluders = sample_box if camera_list is not None else None  # what hides a camera from a tile, outside the tile
+    del sample_box
     # f0 is coarse: its stages run on a seeded subsample of the sample (outlier rules and noise are relative to the spacing).
     sample = sample.subset(sample_indices(len(sample), TILE_DEFAULTS["base_points_per_constraint"] * to.global_count, seed + 1))
     cpu["prepare"] = time.process_time() - cpu.pop("start")
@@ -438,7 +467,8 @@ def fit_tiled(points, normals=None, *, cameras=None, point_camera=None, options:
         log.info("tiles: %d points spread over %d tiles in %.1f s (%s)", n, count, t_spread,
                  "per-tile arrays" if tile_dir is None else f"files in {tile_dir}")
         with tile_client(run_on, tasks=count, workers=to.workers, memory_limit=to.memory_limit) as c:
-            results = run_tasks(c, fit_tile, count, {"base": base, "partition": partition, "settings": settings, "cameras": camera_list},
+            results = run_tasks(c, fit_tile, count, {"base": base, "partition": partition, "settings": settings, "cameras": camera_list,
+                                                     "occluders": occluders},
                                 per_task=[{"store": st} for st in stores], records=records,
                                 progress=progress, desc="fitting tiles")
         del stores
