@@ -108,7 +108,7 @@ DEFAULTS: dict = {
     "surface_count_per_tile": 3000,  # Poisson-disc surface constraints per tile support (None: all its points)
     "global_count": 2000,  # surface constraints of the global coarse fit f0
     "overlap": 0.25,  # support margin on each side, as a fraction of the cell's half-size ...
-    "min_overlap": 0.05,  # ... and at least this (box units)
+    "min_overlap": 0.02,  # ... and at least this (box units)
     "partition_sample": 1_000_000,  # points that decide f0, its outliers and the k-d cuts (a seeded uniform subsample)
     "chunk_points": 1_000_000,  # points read and distributed to the tiles at a time
     "tile_dir": None,  # folder for the per-tile point files (shared storage for remote workers); None: temporary / in memory

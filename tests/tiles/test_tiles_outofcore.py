@@ -177,7 +177,9 @@ def test_tiled_command_reads_a_binary_ply_mapped_and_reports_tiles_and_workers(t
     for t in surf.metadata["tiles"]:  # about 300 Poisson-disc surface constraints plus about 10 % exterior ones
         assert t["constraints"] == t["surface"] + t["exterior"] and 200 < t["surface"] < 400
         assert 0 < t["exterior"] <= 0.15 * t["surface"]  # exterior_ratio 0.1, Poisson-disc "about"
-    assert stats["overlap"] == 0.25 and stats["min_overlap"] == 0.05 and stats["points"] == 4000
+    from o3drbf.options import DEFAULTS
+
+    assert stats["overlap"] == DEFAULTS["overlap"] and stats["min_overlap"] == DEFAULTS["min_overlap"] and stats["points"] == 4000
     (name, w), = stats["workers"].items()  # in-process: one worker, this process
     assert name.startswith("pid ") and w["tasks"] == 3 * 3  # fit, coarse lattice, meshing per tile
     assert 0 < w["seconds"] <= stats["fit_seconds"] + stats["extract_seconds"]
