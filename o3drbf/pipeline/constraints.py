@@ -93,7 +93,8 @@ def build_constraints(data: PointSet, options: ConstraintOptions = ConstraintOpt
         try:
             ext_data, info = exterior_constraints(
                 norm.inverse(surf), data.cameras, offset=options.exterior_offset / norm.scale, ratio=max(options.exterior_ratio, 1e-9),
-                seed=seed, occluder=pts if occluder is None else occluder, point_camera=None if data.point_camera is None else data.point_camera[idx],
+                seed=seed, occluder=pts if occluder is None else occluder,
+                point_camera=None if data.point_camera is None else data.point_camera[idx],
             )
         except ValueError as exc:
             if data.camera_source:

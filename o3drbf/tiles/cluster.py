@@ -163,7 +163,10 @@ def run_tasks(client, func, count: int, shared: dict, progress: bool = False, de
             from distributed import as_completed
 
             # hash=False: a fresh key per call (a re-scattered equal object could hit a key being released).
-            remote = {k: client.scatter(v, broadcast=True, hash=False) for k, v in shared.items()}
+            # Each value in a list: scattering a dict itself (the lattice, the settings) makes one future per
+            # item keyed by the item's *name* ("origin", "seed", ...), the same names in every pass, so one
+            # pass releasing its keys loses the next pass's data ("lost dependencies").
+            remote = {k: client.scatter([v], broadcast=True, hash=False)[0] for k, v in shared.items()}
             futures = []
             run = uuid.uuid4().hex  # not id(): a later call's dict can reuse a freed one's id, and so its keys
             for i in range(count):

@@ -288,3 +288,31 @@ def test_thin_band_meshes_like_every_node_exact(small_tiled):
     assert stats["evaluated"] < 0.3 * values.size
     assert d["l1"] < 1e-3 * h and d["hausdorff"] < 0.05 * h
     assert len(thin.triangles) == len(faces) and thin.is_watertight()
+
+
+def _first_of(i, lattice=None):
+    return float(lattice["origin"][0]) + i
+
+
+def test_shared_dicts_are_scattered_whole_under_fresh_keys(client):
+    """A dict argument (the lattice, the settings) goes out as one object: scattering the dict itself keyed each item
+    by its name ("origin", ...), the same in every pass, and one pass releasing them lost the next's ("lost dependencies")."""
+    from o3drbf.tiles.cluster import run_tasks
+
+    class Spy:
+        def __init__(self, c):
+            self.c, self.keys = c, []
+
+        def scatter(self, data, **kw):
+            out = self.c.scatter(data, **kw)
+            self.keys += [f.key for f in (out.values() if isinstance(out, dict) else out)]
+            return out
+
+        def __getattr__(self, name):
+            return getattr(self.c, name)
+
+    spy = Spy(client)
+    for _ in range(3):
+        assert run_tasks(spy, _first_of, 3, {"lattice": {"origin": np.ones(3), "h": 0.5}}) == [1.0, 2.0, 3.0]
+    assert len(spy.keys) == 3 and len(set(spy.keys)) == 3
+    assert not {"origin", "h"} & set(map(str, spy.keys))

@@ -57,7 +57,8 @@ def test_two_worker_processes_on_a_scheduler_with_a_shared_tile_folder(tmp_path)
         cmd = [sys.executable, "-m", "o3drbf", "reconstruct", str(tmp_path / "t.ply"), "-o", str(out), "--tiles", "4",
                "--scheduler", address, "--resolution", "48", "-v"]
         done = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
-        assert done.returncode == 0, done.stderr[-3000:]
+        log.flush()
+        assert done.returncode == 0, done.stderr[-3000:] + "\n--- dask.log ---\n" + (tmp_path / "dask.log").read_text()[-4000:]
         text = done.stdout
         assert "memory-mapped, spread to per-tile files" in text and "tiles            4;" in text
         workers = [line for line in text.splitlines() if line.startswith("  workers ")]
