@@ -25,7 +25,7 @@ def fast_memory(n: int, restart: int = 50, eps: float = 1e-6) -> int:
     """Rough peak bytes of a fast solve with ``n`` constraints, from ``n`` alone.
 
     The FMM route (fmm3dpy's working memory) or the grid route's near parts
-    (about 1,000 + 2 x 400 entries a row) with a grid of 10 kB a centre; the
+    (1,800 stored entries a row: the product's and its two companions') with 10,000 bytes of grid a centre; the
     estimate that knows the centres is :func:`memory_plan`."""
     fmm = _FMM_BYTES_PER_POINT * n * (1.0 if eps <= 1e-6 else 0.6) + 12 * n * 300
     grid = NNZ_BYTES * n * 1800 + 1e4 * n
@@ -65,7 +65,7 @@ def grid_plan(kernel, centres, tree, eps: float, neighbours: int | None = None, 
         Count the stored near-field matrix (products at the centres build it;
         evaluation at targets does not).
     memo : dict, optional
-        Neighbour radii already measured on this tree, by neighbour count (filled in).
+        Neighbour radii already found on this tree, by neighbour count (filled in).
 
     Returns
     -------

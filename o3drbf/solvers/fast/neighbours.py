@@ -148,7 +148,7 @@ class CellList:
     --------
     >>> import numpy as np
     >>> pts = np.array([[0.0, 0, 0], [0.5, 0, 0], [3.0, 0, 0]])
-    >>> tab = np.linspace(1.0, 0.0, 11)   # f(r) = 1 - r on [0, 1], dr = 0.1
+    >>> tab = np.linspace(1.0, 0.0, 11)   # 1 - r sampled on [0, 1], every tenth
     >>> CellList(pts, 1.0).matrix(pts, tab, 0.1).toarray().round(2)
     array([[1. , 0.5, 0. ],
            [0.5, 1. , 0. ],
