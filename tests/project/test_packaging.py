@@ -118,7 +118,7 @@ def test_wheel_installs_the_viewer_inside_the_package(dist):
     names = zipfile.ZipFile(wheel).namelist()
     top = {n.split("/")[0] for n in names if not n.split("/")[0].endswith((".dist-info", ".data"))}
     assert top == {"o3drbf"}, top
-    for module in ("o3drbf/viewers/app.py", "o3drbf/viewers/refit.py", "o3drbf/cli/__main__.py", "o3drbf/solvers/fast.py"):
+    for module in ("o3drbf/viewers/app.py", "o3drbf/viewers/refit.py", "o3drbf/cli/__main__.py", "o3drbf/solvers/fast/__init__.py"):
         assert module in names, module
     meta = zipfile.ZipFile(wheel).read(next(n for n in names if n.endswith("METADATA"))).decode()
     assert "Requires-Dist: pyvista" in meta  # compare and view work after a plain pip install

@@ -1,0 +1,625 @@
+"""Grid (particle-mesh) sums for the multi-order kernel: the Ewald-type split, spreading and gathering,
+the FFT mesh, :class:`GridSum`, and :func:`fast_operator` (the product a fast solve takes)."""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+
+import numpy as np
+import scipy.fft as _sfft
+from scipy.spatial import cKDTree
+
+from o3drbf.rbf.kernels import Kernel, MultiOrder
+from o3drbf.rbf.sums import kernel_sum
+from o3drbf.solvers.base import memory_limit_or_default
+from o3drbf.solvers.fast.fmm import FastSum
+from o3drbf.solvers.fast.neighbours import HAVE_GRID, CellList, default_neighbours, neighbour_radius, njit, prange, product_neighbours
+from o3drbf.solvers.fast.tolerance import DEFAULT_EPS, clip_eps
+
+__all__ = ["GridSum", "Mesh", "fast_operator", "grid_bytes", "grid_budget", "outside_centres", "split_design",
+           "near_table", "long_part", "GRID_BUDGET", "DIRECT_PAIRS"]
+
+
+def _components(kernel):
+    """[(kappa, coef)] with phi(r) = sum coef e^{-kappa r} / (4 pi r) (complex allowed)."""
+    a, b = kernel.decay_rates
+    A, B = kernel.coefficients
+    d2 = kernel.delta ** 2
+    return [(0.0, 1.0 / d2), (complex(a), complex(A) / d2), (complex(b), complex(B) / d2)]
+
+
+def _psi_long(r, kappa, sigma):
+    """G_sigma * e^{-kappa r}/(4 pi r), times e^{-kappa^2 sigma^2 / 2} (far field = the kernel's)."""
+    from scipy.special import erfc, erfcx
+    r = np.maximum(np.asarray(r, float), 1e-7 * sigma)
+    q = math.sqrt(2.0) * sigma
+    x1 = (kappa * sigma**2 - r) / q
+    x2 = (kappa * sigma**2 + r) / q
+    t1 = np.exp(-kappa * r) * erfc(x1)
+    t2 = erfcx(x2) * np.exp(-(kappa * sigma) ** 2 / 2 - r * r / (2 * sigma**2))
+    return (t1 - t2) / (8 * math.pi * r)
+
+
+def long_part(kernel, r, sigma, extra=0.0):
+    """sum_c coef_c e^{-kappa_c^2 extra^2 / 2} psi_long(r; kappa_c, sigma)."""
+    out = np.zeros(np.shape(r), dtype=complex)
+    for kappa, coef in _components(kernel):
+        damp = np.exp(-(kappa * extra) ** 2 / 2)
+        out += coef * damp * _psi_long(r, kappa + 0j, sigma)
+    return out.real
+
+
+@njit(cache=True)
+def _spread(pts, w, origin, h, s, half, grid):
+    W = 2 * half + 1
+    c = 1.0 / ((2 * math.pi) ** 1.5 * s ** 3)
+    inv = 1.0 / (2 * s * s)
+    wx = np.empty(W); wy = np.empty(W); wz = np.empty(W)
+    for p in range(pts.shape[0]):
+        fx = (pts[p, 0] - origin[0]) / h; fy = (pts[p, 1] - origin[1]) / h; fz = (pts[p, 2] - origin[2]) / h
+        ix = int(math.floor(fx + 0.5)) - half; iy = int(math.floor(fy + 0.5)) - half; iz = int(math.floor(fz + 0.5)) - half
+        for a in range(W):
+            d = (ix + a - fx) * h; wx[a] = math.exp(-d * d * inv)
+            d = (iy + a - fy) * h; wy[a] = math.exp(-d * d * inv)
+            d = (iz + a - fz) * h; wz[a] = math.exp(-d * d * inv)
+        wp = w[p] * c
+        for a in range(W):
+            va = wp * wx[a]
+            for b in range(W):
+                vb = va * wy[b]
+                for q in range(W):
+                    grid[ix + a, iy + b, iz + q] += vb * wz[q]
+
+
+@njit(cache=True, parallel=True)
+def _gather(pts, origin, h, s, half, u, out, grad, want):
+    W = 2 * half + 1
+    c = 1.0 / ((2 * math.pi) ** 1.5 * s ** 3)
+    inv = 1.0 / (2 * s * s)
+    for p in prange(pts.shape[0]):
+        wx = np.empty(W); wy = np.empty(W); wz = np.empty(W)
+        dx = np.empty(W); dy = np.empty(W); dz = np.empty(W)
+        fx = (pts[p, 0] - origin[0]) / h; fy = (pts[p, 1] - origin[1]) / h; fz = (pts[p, 2] - origin[2]) / h
+        ix = int(math.floor(fx + 0.5)) - half; iy = int(math.floor(fy + 0.5)) - half; iz = int(math.floor(fz + 0.5)) - half
+        for a in range(W):
+            d = (fx - ix - a) * h; wx[a] = math.exp(-d * d * inv); dx[a] = -d / (s * s) * wx[a]
+            d = (fy - iy - a) * h; wy[a] = math.exp(-d * d * inv); dy[a] = -d / (s * s) * wy[a]
+            d = (fz - iz - a) * h; wz[a] = math.exp(-d * d * inv); dz[a] = -d / (s * s) * wz[a]
+        acc = 0.0; g0 = 0.0; g1 = 0.0; g2 = 0.0
+        for a in range(W):
+            for b in range(W):
+                row = 0.0; rowd = 0.0
+                for q in range(W):
+                    v = u[ix + a, iy + b, iz + q]
+                    row += v * wz[q]
+                    if want:
+                        rowd += v * dz[q]
+                acc += wx[a] * wy[b] * row
+                if want:
+                    g0 += dx[a] * wy[b] * row
+                    g1 += wx[a] * dy[b] * row
+                    g2 += wx[a] * wy[b] * rowd
+        out[p] = c * acc
+        if want:
+            grad[p, 0] = c * g0; grad[p, 1] = c * g1; grad[p, 2] = c * g2
+
+
+def _fft_workers() -> int:
+    try:
+        return max(1, min(int(os.environ.get("OMP_NUM_THREADS") or os.cpu_count() or 1), os.cpu_count() or 1))
+    except ValueError:
+        return 1
+
+
+#: Bytes of FFT arrays a grid may take when memory is not the question (reference size of the
+#: tests and benchmarks); a grid's actual budget is :func:`grid_budget`, from the memory available.
+GRID_BUDGET = 2 * 2**30
+
+
+def grid_budget(budget: int | None = None) -> int:
+    """Bytes a new grid's FFT arrays may take: ``budget``, or :func:`memory_limit_or_default`
+    (80 % of the memory available now), so that a grid follows the memory the machine has."""
+    return memory_limit_or_default() if budget is None else int(budget)
+
+
+def split_design(rc: float, eps: float) -> tuple[float, float, float, int]:
+    """``(sigma, s, h, half)`` of a grid split whose near part ends at ``rc`` for the design tolerance ``eps``.
+
+    sigma is the Ewald split width (``erfc(rc / (sqrt(2) sigma)) = eps``), ``s = sigma / sqrt(3)``
+    the spreading Gaussian's standard deviation, ``h`` the grid spacing (aliasing
+    ~``exp(-2 pi^2 s^2 / h^2)`` below eps) and ``half`` the stencil's half-width in cells.
+    """
+    from scipy.special import erfcinv
+
+    sigma = rc / (math.sqrt(2.0) * float(erfcinv(eps)))
+    s = sigma / math.sqrt(3.0)
+    ratio = max(0.7, math.sqrt(math.log(10.0 / eps) / (2 * math.pi**2)))
+    h = s / ratio
+    half = int(math.ceil(math.sqrt(2 * math.log(10.0 / eps)) * ratio))
+    return sigma, s, h, half
+
+
+def near_table(kernel, rc: float, sigma: float, eps: float):
+    """The near part phi_S = phi - phi_L tabulated: ``(cut radius, table, dr, d table / r)``; the cut is
+    where ``|phi_S| < eps phi(0)``."""
+    nt = 1 << 15
+    rr = np.linspace(0.0, 1.3 * rc + 8 * sigma, nt)
+    phis = kernel(rr) - long_part(kernel, rr, sigma)
+    big = np.nonzero(np.abs(phis) > eps * float(kernel.value_at_zero))[0]
+    cut = float(rr[min(big[-1] + 1, nt - 1)]) if len(big) else float(rr[1])
+    dr = float(rr[1] - rr[0])
+    dphis = np.gradient(phis, dr)
+    dtab = np.empty(nt)
+    dtab[1:] = dphis[1:] / rr[1:]
+    dtab[0] = dtab[1]
+    return cut, phis, dr, dtab
+
+
+#: Kernel evaluations per product allowed for the far centres a grid leaves out (summed directly).
+DIRECT_PAIRS = 50_000_000
+
+
+def grid_bytes(lo, hi, h: float, half: int) -> int:
+    """Bytes the grid backend's FFT arrays take over the box ``[lo, hi]`` ((3,) each) at spacing ``h``
+    with a spreading half-width of ``half`` cells (what a grid's budget, :func:`grid_budget`, is compared with)."""
+    return Mesh.nbytes(lo, hi, h, half)
+
+
+class Mesh:
+    """A grid of spacing h over a box, with the FFT of the grid kernel K (zero-padded: aperiodic)."""
+
+    def __init__(self, lo, hi, h, s, half, ktable, dtype=np.float64):
+        self.h, self.s, self.half, self.dtype = h, s, half, dtype
+        pad = (half + 2) * h
+        self.origin = np.asarray(lo, float) - pad
+        self.shape = tuple(int(math.ceil((hi[i] - lo[i] + 2 * pad) / h)) + 1 for i in range(3))
+        self.fshape = tuple(_sfft.next_fast_len(2 * m - 1, real=True) for m in self.shape)
+        idx = [np.minimum(np.arange(p), p - np.arange(p)).astype(np.int32) for p in self.fshape]
+        n2 = (idx[0][:, None, None] ** 2 + idx[1][None, :, None] ** 2) + idx[2][None, None, :] ** 2
+        kgrid = ktable(n2)  # K at h * sqrt(n2)
+        del n2
+        kgrid *= h**3
+        # K is even along every axis (K[i] = K[p - i]), so its transform is real: keep the real part only
+        # (half the memory of the complex spectrum).
+        spectrum = _sfft.rfftn(kgrid.astype(dtype, copy=False), workers=_fft_workers(), overwrite_x=True)
+        del kgrid
+        self.khat = np.ascontiguousarray(spectrum.real)
+        del spectrum
+
+    @staticmethod
+    def nbytes(lo, hi, h, half, single: bool = False, part: str = "all") -> int:
+        """Bytes of a grid's kernel transform plus the work arrays of one potential (``single``: float32 FFTs).
+
+        ``part``: "all", "kept" (the real kernel transform, kept while the grid lives: 4 bytes a
+        padded node, 2 in single precision) or "work" (the padded grid, its transform and the
+        inverse of one potential, freed after it)."""
+        pad = (half + 2) * h
+        shape = [math.ceil((hi[i] - lo[i] + 2 * pad) / h) + 1 for i in range(3)]
+        kept, work = (2, 10) if single else (4, 20)
+        per = {"all": kept + work, "kept": kept, "work": work}[part]
+        return int(per * np.prod([2.0 * m for m in shape]))
+
+    def potential(self, pts, w):
+        # Spread straight into the zero-padded array the FFT takes (no padded copy), transform in place.
+        grid = np.zeros(self.fshape, dtype=self.dtype)
+        _spread(pts, w, self.origin, self.h, self.s, self.half, grid)
+        g = _sfft.rfftn(grid, workers=_fft_workers(), overwrite_x=True)
+        del grid
+        g *= self.khat
+        u = _sfft.irfftn(g, s=self.fshape, workers=_fft_workers(), overwrite_x=True)
+        del g
+        out = np.ascontiguousarray(u[: self.shape[0], : self.shape[1], : self.shape[2]], dtype=float)
+        del u
+        out *= self.h**3
+        return out
+
+    def gather(self, u, pts, gradient):
+        out = np.empty(len(pts))
+        grad = np.empty((len(pts), 3)) if gradient else np.empty((1, 3))
+        _gather(pts, self.origin, self.h, self.s, self.half, u, out, grad, gradient)
+        return (out, grad) if gradient else out
+
+    def covers(self, pts):
+        lo = self.origin + (self.half + 1) * self.h
+        hi = self.origin + (np.array(self.shape) - self.half - 2) * self.h
+        return bool((pts.min(axis=0) >= lo).all() and (pts.max(axis=0) <= hi).all())
+
+    def inside(self, pts):
+        """(M,) bool: the points whose stencil lies on this grid."""
+        lo = self.origin + (self.half + 1) * self.h
+        hi = self.origin + (np.array(self.shape) - self.half - 2) * self.h
+        return ((pts >= lo) & (pts <= hi)).all(axis=1)
+
+
+class GridSum:
+    """Fast ``sum_j w_j phi(|x - c_j|)`` for the multi-order kernel by a grid (particle-mesh) split.
+
+    The kernel is split as in Ewald summation, term by term (Laplace and
+    Yukawa): ``phi = phi_L + phi_S`` with
+
+        phi_L = sum_c coef_c e^{-kappa_c^2 sigma^2 / 2} (G_sigma * e^{-kappa_c r} / (4 pi r)),
+
+    smooth (bandwidth ~ 1 / sigma) and equal to phi beyond a few sigma, and
+    ``phi_S = phi - phi_L`` short-ranged (cut where ``|phi_S| < eps phi(0)``).
+    The far part is three Gaussian convolutions: spread the weights with a
+    Gaussian of std s = sigma / sqrt(3) onto a grid of spacing
+    ``h = s / ratio``, convolve with the grid kernel K (its zero-padded FFT,
+    closed-form erfc expressions), gather with the same Gaussian.  The near
+    part is a sparse matrix (centres) or a compiled cell-list sum (targets),
+    with phi_S from a 32,768-entry table.  Coincident points need no special
+    case: the grid includes phi_L(0), the near part phi_S(0).
+
+    Parameters
+    ----------
+    kernel : MultiOrder
+    centres : (N, 3) array
+    eps : float
+        Relative tolerance, 1e-9..1e-2 (sets the split, the stencil and h).
+    neighbours : int, optional
+        Near-field size: sigma is chosen so that the cut-off radius holds about
+        this many centres (more: smaller grid, larger sparse part).  Default
+        :func:`default_neighbours`.
+    budget : int, optional
+        Bytes allowed for the FFT arrays; default :func:`grid_budget` (from the
+        memory available when the grid is built, and again when :meth:`cover`
+        enlarges it).
+    tree : cKDTree, optional
+        Of ``centres`` (reused when given).
+    outside : (K,) int array, optional
+        Centres the grid leaves out and sums directly (both as sources and
+        as targets); default :func:`outside_centres` (isolated centres beyond
+        the others' box, such as the exterior sphere), so that the grid's
+        box, and its memory, is set by the data rather than by the sphere.
+    radius : float, optional
+        The near-field radius itself (instead of ``neighbours``): the looser
+        companions take one that keeps their grid no finer than this one's.
+
+    Raises
+    ------
+    ValueError
+        Not a multi-order kernel, confluent, or numba missing.
+    MemoryError
+        The grid would exceed the budget.
+    """
+
+    def __init__(self, kernel: Kernel, centres, eps: float = DEFAULT_EPS, neighbours: int | None = None,
+                 budget: int | None = None, tree: cKDTree | None = None, outside=None, radius: float | None = None):
+        if not HAVE_GRID:
+            raise ValueError("the grid backend needs numba, which is not installed")
+        if not isinstance(kernel, MultiOrder) or kernel.coefficients is None:
+            raise ValueError(f"the grid backend supports the non-confluent multi-order kernel, not {kernel!r}")
+        t0 = time.perf_counter()
+        self.kernel = kernel
+        self.centres = np.ascontiguousarray(centres, dtype=float)
+        self.n = n = len(self.centres)
+        self.eps = clip_eps(eps)
+        eps = self.eps / 10  # the split is designed at a tenth of the tolerance, so that the result stays below it
+        self.tree = cKDTree(self.centres) if tree is None else tree
+        self.phi0 = float(kernel.value_at_zero)
+        self.mode = "grid"
+        if radius is None:
+            rc = neighbour_radius(self.centres, self.tree, default_neighbours(n) if neighbours is None else neighbours)
+        else:
+            rc = float(radius)
+        self.design_radius = rc
+        sigma, s, h, half = split_design(rc, eps)
+        self.s, self.h, self.half, self.sigma = s, h, half, sigma
+        single = self.eps >= 1e-4  # single-precision FFTs (half the time and memory): ~1e-6 round-off << eps
+        full = Mesh.nbytes(self.centres.min(axis=0), self.centres.max(axis=0), h, half, single)
+        if outside is None:
+            outside = outside_centres(self.centres, self.tree, rc)
+        self._set_core(outside)
+        lo, hi = self._cc.min(axis=0), self._cc.max(axis=0)
+        need = Mesh.nbytes(lo, hi, h, half, single)
+        self._fixed_budget = None if budget is None else int(budget)
+        self.budget = grid_budget(budget)
+        self._eval_mesh = None
+        if need > self.budget:
+            raise MemoryError(f"the grid of fast sums over {n:,} centres needs ~{need / 2**30:.1f} GB of FFT arrays "
+                              f"(budget {self.budget / 2**30:.1f} GB)")
+        # Near part: phi_S = phi - phi_L on a table, cut where |phi_S| < eps phi(0).
+        self.rc, self.tab, self.dr, self.dtab = near_table(kernel, rc, sigma, eps)
+        self._meshes = []
+        self.mesh = self._mesh(lo, hi)
+        self.cells = CellList(self._cc, self.rc)
+        self._near_m = None
+        key = np.floor((self._cc - self.mesh.origin) / (4 * h)).astype(np.int64)
+        self._perm = np.lexsort((key[:, 2], key[:, 1], key[:, 0]))  # grid order: cache-friendly spreading
+        self._sorted = np.ascontiguousarray(self._cc[self._perm])
+        self.info = {"mode": "grid (Gaussian split: FFT far part + sparse near part)", "split": "grid",
+                     "near_radius": self.rc, "sigma": sigma, "h": h, "grid": self.mesh.shape,
+                     "fft": self.mesh.fshape, "stencil": 2 * half + 1, "grid_bytes": need,
+                     "grid_bytes_all_centres": full, "outside": len(self.outside),
+                     "setup_seconds": time.perf_counter() - t0}
+
+    def _ktable(self, n2):
+        top = int(n2.max())
+        vals = long_part(self.kernel, self.h * np.sqrt(np.arange(top + 1.0)), self.s, extra=math.sqrt(2.0) * self.s)
+        return vals[n2]
+
+    def _mesh(self, lo, hi):
+        for m in self._meshes:
+            if m.covers(np.array([lo, hi])):
+                return m
+        # Single-precision FFTs (half the time and memory) where ~1e-6 round-off is far below eps.
+        m = Mesh(lo, hi, self.h, self.s, self.half, self._ktable, np.float32 if self.eps >= 1e-4 else np.float64)
+        self._meshes = [m] + self._meshes[:1]
+        return m
+
+    def _mesh_bytes(self, lo, hi) -> int:
+        return Mesh.nbytes(lo, hi, self.h, self.half, self.eps >= 1e-4)
+
+    def _set_core(self, outside):
+        """Split the centres into the grid's (core) and the few far ones summed directly."""
+        out = np.unique(np.asarray(outside, dtype=np.int64).reshape(-1))
+        if len(out) and (out[0] < 0 or out[-1] >= self.n or len(out) >= self.n):
+            raise ValueError("outside must index fewer than all of the centres; pass None to choose them")
+        self.outside = out
+        if len(out) == 0:
+            self._core = None
+            self._cc = self.centres
+            return
+        mask = np.ones(self.n, bool)
+        mask[out] = False
+        self._core = np.nonzero(mask)[0]
+        self._cc = np.ascontiguousarray(self.centres[self._core])
+        self._core_pos = np.full(self.n, -1, np.int64)
+        self._core_pos[self._core] = np.arange(len(self._core))
+
+    @property
+    def near(self):
+        """Sparse matrix of phi_S between the grid's (core) centres (built on first use)."""
+        if self._near_m is None:
+            self._near_m = self.cells.matrix(self._cc, self.tab, self.dr)
+            self.info["near_nnz"] = int(self._near_m.nnz)
+        return self._near_m
+
+    def _tier(self, eps):
+        """The loosest operator at least as accurate as ``eps``: this one, or a cached
+        looser companion (tolerance 1e-4 or 1e-3, :meth:`tier_radius`: a grid no finer,
+        single-precision FFTs, a 9-11 point stencil instead of 13-15, a smaller near part)."""
+        if eps is None:
+            return self
+        for tol in (1e-3, 1e-4):
+            if tol <= eps and tol >= 10 * self.eps:
+                tiers = self.__dict__.setdefault("_tiers", {})
+                if tol not in tiers:
+                    tiers[tol] = GridSum(self.kernel, self.centres, eps=tol, radius=self.tier_radius(tol),
+                                         tree=self.tree, outside=self.outside, budget=self._fixed_budget)
+                return tiers[tol]
+        return self
+
+    def tier_radius(self, tol: float) -> float:
+        """Near-field radius of the companion at tolerance ``tol``: that of ~300 neighbours, or more where
+        that would make its grid finer than this one's (a looser companion never takes more FFT memory)."""
+        rc = neighbour_radius(self.centres, self.tree, min(300, max(self.n // 300, 64)))
+        return max(rc, self.h / split_design(1.0, clip_eps(tol) / 10)[2])
+
+    def matvec(self, w, eps: float | None = None) -> np.ndarray:
+        """(Phi w)_i, self term included, to relative accuracy ``eps`` (default: the operator's)."""
+        w = np.asarray(w, dtype=float)
+        op = self._tier(eps)
+        if op is not self:
+            return op.matvec(w)
+        p = self._perm
+        wc = w if self._core is None else w[self._core]
+        u = self.mesh.potential(self._sorted, np.ascontiguousarray(wc[p]))
+        outc = np.empty(len(self._cc))
+        outc[p] = self.mesh.gather(u, self._sorted, False)
+        outc += self.near @ wc
+        if self._core is None:
+            return outc
+        # The far centres: summed directly (few of them), both ways.
+        out = np.empty(self.n)
+        o = self.outside
+        out[self._core] = outc + kernel_sum(self.kernel, self.centres[o], w[o], self._cc)
+        out[o] = kernel_sum(self.kernel, self.centres, w, self.centres[o])
+        return out
+
+    def evaluate(self, w, targets, gradient: bool = False, eps: float | None = None):
+        """sum_j w_j phi(|x - c_j|) (and its gradient) at arbitrary targets.
+
+        Targets beyond the grid are summed directly when they are few (at most
+        ``DIRECT_PAIRS / N``), else the grid is enlarged to cover them."""
+        t = np.ascontiguousarray(np.asarray(targets, dtype=float).reshape(-1, 3))
+        w = w if isinstance(w, np.ndarray) and w.dtype == float else np.asarray(w, dtype=float)
+        if len(t) == 0:
+            return (np.zeros(0), np.zeros((0, 3))) if gradient else np.zeros(0)
+        base = self.mesh if self._eval_mesh is None else self._eval_mesh
+        inside = base.inside(t)
+        if inside.all():
+            mesh, far = base, None
+        elif (~inside).sum() * self.n <= DIRECT_PAIRS:
+            mesh, far = base, np.nonzero(~inside)[0]
+        else:
+            mesh, far = self._mesh(np.minimum(self._cc.min(0), t.min(0)), np.maximum(self._cc.max(0), t.max(0))), None
+        if far is not None:
+            near_t = np.nonzero(inside)[0]
+            v_out = np.empty(len(t))
+            g_out = np.empty((len(t), 3)) if gradient else None
+            exact = kernel_sum(self.kernel, self.centres, w, t[far], gradient=gradient)
+            if len(near_t):
+                part = self._evaluate_on(mesh, w, t[near_t], gradient)
+                if gradient:
+                    v_out[near_t], g_out[near_t] = part
+                else:
+                    v_out[near_t] = part
+            if gradient:
+                v_out[far], g_out[far] = exact
+                return v_out, g_out
+            v_out[far] = exact
+            return v_out
+        return self._evaluate_on(mesh, w, t, gradient)
+
+    def cover(self, lo, hi) -> bool:
+        """Build (once) the grid :meth:`evaluate` uses so that it covers the box ``[lo, hi]``.
+
+        Without it, targets beyond the centres' grid enlarge it call by call
+        (a new kernel transform and potential each time); with it, one grid
+        and one potential serve a whole extraction.  Returns False (and
+        changes nothing) when that grid would exceed the budget.
+
+        Parameters
+        ----------
+        lo, hi : (3,) array_like
+            Corners of the box, in the centres' coordinates.
+        """
+        lo = np.minimum(self._cc.min(axis=0), np.asarray(lo, dtype=float))
+        hi = np.maximum(self._cc.max(axis=0), np.asarray(hi, dtype=float))
+        if self.mesh.covers(np.array([lo, hi])):
+            self._eval_mesh = None
+            return True
+        need = self._mesh_bytes(lo, hi)
+        limit = grid_budget(self._fixed_budget)
+        if self._fixed_budget is None:  # what is available now, plus the grid the new one replaces
+            limit += self._mesh_bytes(*self._box())
+        if need > limit:
+            return False
+        # The larger grid replaces the centres' one (it serves the products too): one grid in memory, not two.
+        self._meshes = []
+        self._ucache = None
+        self.mesh = self._eval_mesh = self._mesh(lo, hi)
+        return True
+
+    def _box(self):
+        return self._cc.min(axis=0), self._cc.max(axis=0)
+
+    def _evaluate_on(self, mesh, w, t, gradient):
+        """The grid + near sum from the core centres at targets inside ``mesh``, plus the far centres directly."""
+        cached = getattr(self, "_ucache", None)
+        wc = w if self._core is None else w[self._core]
+        if cached is not None and cached[0] is mesh and cached[1] is w:
+            u = cached[2]  # same weights object (an evaluator): reuse the grid potential
+        else:
+            u = mesh.potential(self._sorted, np.ascontiguousarray(wc[self._perm]))
+            self._ucache = (mesh, w, u)
+        # Targets in grid order: the stencil reads (and the cell-list scans) stay in cache.
+        key = np.floor((t - mesh.origin) / (4 * mesh.h)).astype(np.int64)
+        tp = np.lexsort((key[:, 2], key[:, 1], key[:, 0]))
+        ts = np.ascontiguousarray(t[tp])
+        out = mesh.gather(u, ts, gradient)
+        vals, grad = out if gradient else (out, np.empty((1, 3)))
+        self.cells.add_sum(ts, wc, self.tab, self.dtab, self.dr, vals, grad if gradient else None)
+        if self._core is not None:
+            o = self.outside
+            extra = kernel_sum(self.kernel, self.centres[o], w[o], ts, gradient=gradient)
+            if gradient:
+                vals += extra[0]
+                grad += extra[1]
+            else:
+                vals += extra
+        v_out = np.empty(len(t))
+        v_out[tp] = vals
+        if gradient:
+            g_out = np.empty((len(t), 3))
+            g_out[tp] = grad
+            return v_out, g_out
+        return v_out
+
+    def from_subset(self, subset):
+        """A callable ``(w_sub, eps) -> sum_{j in subset} w_j phi(|c_i - c_j|)`` at every centre."""
+        subset = np.asarray(subset)
+        if self._core is None:
+            csub, cmask, osub = subset, None, subset[:0]
+        else:
+            cmask = self._core_pos[subset] >= 0
+            csub, osub = self._core_pos[subset[cmask]], subset[~cmask]
+        cache = {}
+
+        def apply(w, eps=None):
+            op = self._tier(eps)
+            w = np.asarray(w, dtype=float)
+            if op not in cache:
+                key = np.floor((op._cc[csub] - op.mesh.origin) / (4 * op.h)).astype(np.int64)
+                pos = np.lexsort((key[:, 2], key[:, 1], key[:, 0]))
+                cache[op] = (np.ascontiguousarray(op._cc[csub[pos]]), pos, op.near[:, csub].tocsr())
+            pts, pos, cols = cache[op]
+            wc = w if cmask is None else w[cmask]
+            outc = np.empty(len(op._cc))
+            if len(csub):
+                u = op.mesh.potential(pts, np.ascontiguousarray(wc[pos]))
+                outc[op._perm] = op.mesh.gather(u, op._sorted, False)
+                outc += cols @ wc
+            else:
+                outc[:] = 0.0
+            if self._core is None:
+                return outc
+            out = np.zeros(self.n)
+            out[self._core] = outc
+            if len(osub):
+                out += kernel_sum(self.kernel, self.centres[osub], w[~cmask], self.centres)
+            o = self.outside
+            out[o] = kernel_sum(self.kernel, self.centres[subset], w, self.centres[o])
+            return out
+
+        return apply
+
+
+def outside_centres(centres, tree: cKDTree, radius: float, max_pairs: int | None = None) -> np.ndarray:
+    """Indices of the few far centres a grid need not cover (summed directly instead).
+
+    A centre is isolated when no other centre lies within ``radius`` (the
+    near-field radius, ~1,000 neighbours for the others): e.g. the sparse
+    sphere of exterior constraints around the bounding box, which would
+    otherwise set the grid's box (and its memory).  The grid then covers the box of the
+    non-isolated centres; the centres outside that box are returned, or none
+    if they are both more than ``max_pairs / N`` (default ``DIRECT_PAIRS``)
+    and more than 0.1 % of the centres.
+
+    Parameters
+    ----------
+    centres : (N, 3) array
+    tree : cKDTree
+        Of ``centres``.
+    radius : float
+    max_pairs : int, optional
+
+    Returns
+    -------
+    (K,) int array
+    """
+    centres = np.asarray(centres, dtype=float)
+    n = len(centres)
+    cap = DIRECT_PAIRS if max_pairs is None else int(max_pairs)
+    if n < 3:
+        return np.zeros(0, np.int64)
+    d, _ = tree.query(centres, k=2)
+    busy = d[:, 1] <= radius
+    if busy.sum() < 2:
+        return np.zeros(0, np.int64)
+    lo, hi = centres[busy].min(axis=0), centres[busy].max(axis=0)
+    out = np.nonzero(((centres < lo) | (centres > hi)).any(axis=1))[0]
+    if len(out) * n > cap and len(out) > 1e-3 * n:  # a few (the sphere) are summed directly even at large N
+        return np.zeros(0, np.int64)
+    return out.astype(np.int64)
+
+
+def fast_operator(kernel: Kernel, centres, eps: float = DEFAULT_EPS, backend: str = "auto", memory_limit: int | None = None,
+                  neighbours: int | None = None):
+    """The product for a fast solve: :class:`GridSum` or :class:`FastSum`.
+
+    ``backend="auto"`` takes the grid for the multi-order kernel when numba is
+    there, ``eps >= 1e-8`` and the grid fits :func:`grid_budget` (it is
+    multi-threaded, fmm3dpy's wheel is not), else the FMM (``"fmm"``).  The grid's near field has
+    ``neighbours``, default :func:`product_neighbours` (``memory_limit``): right for
+    products at the centres; evaluation at many targets wants fewer (:func:`default_neighbours`)."""
+    if neighbours is None:
+        neighbours = product_neighbours(len(centres), memory_limit)
+    if backend not in ("auto", "grid", "fmm"):
+        raise ValueError(f"backend must be 'auto', 'grid' or 'fmm', got {backend!r}")
+    if backend == "grid":
+        return GridSum(kernel, centres, eps=eps, neighbours=neighbours)
+    if backend == "auto" and HAVE_GRID and isinstance(kernel, MultiOrder) and kernel.coefficients is not None \
+            and eps >= 1e-8 and len(centres) >= 64:
+        try:
+            return GridSum(kernel, centres, eps=eps, neighbours=neighbours)
+        except MemoryError as exc:
+            import logging
+
+            logging.getLogger("o3drbf").warning(
+                "fast products: %s; falling back to fmm3dpy (single-threaded wheel: ~%.0f s a product)",
+                exc, 30.0 * len(centres) / 1e5,
+            )
+    return FastSum(kernel, centres, eps=eps)

@@ -1,0 +1,263 @@
+"""Memory of a fast fit, planned without building it: :func:`memory_plan`, :func:`check_memory`."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from o3drbf.rbf.kernels import MultiOrder
+from o3drbf.solvers.base import MemoryRefusal, memory_limit_or_default
+from o3drbf.solvers.fast.grid import Mesh, near_table, outside_centres, split_design
+from o3drbf.solvers.fast.neighbours import HAVE_GRID, NNZ_BYTES, default_neighbours, neighbour_radius, product_neighbours
+from o3drbf.solvers.fast.tolerance import DEFAULT_EPS, clip_eps, product_tolerance
+
+__all__ = ["fast_memory", "grid_plan", "memory_plan", "check_memory", "fitting_fraction"]
+
+#: Bytes of FMM working memory per point (fmm3dpy at 1e-6; benchmarks/recorded/fast_solver.md).
+_FMM_BYTES_PER_POINT = 8_000
+#: Bytes per centre of the kd-tree, the sorted copies and the index arrays every product keeps.
+_PER_CENTRE_BYTES = 200
+
+
+def fast_memory(n: int, restart: int = 50, eps: float = 1e-6) -> int:
+    """Rough peak bytes of a fast solve with ``n`` constraints, from ``n`` alone.
+
+    The FMM route (fmm3dpy's working memory) or the grid route's near parts
+    (1,800 stored entries a row: the product's and its two companions') with 10,000 bytes of grid a centre; the
+    estimate that knows the centres is :func:`memory_plan`."""
+    fmm = _FMM_BYTES_PER_POINT * n * (1.0 if eps <= 1e-6 else 0.6) + 12 * n * 300
+    grid = NNZ_BYTES * n * 1800 + 1e4 * n
+    krylov = 2 * (restart + 2) * n * 8
+    precond = 12 * n * 64 + 8 * 6000**2 + 256 * 2**20 + (12 * (n // 8) * 1000 if n > 144_000 else 0)
+    return int(max(fmm, grid) + krylov + precond)
+
+
+def _core_box(centres, tree, rc, outside=None):
+    """(outside indices, core lo, core hi, core count) of a grid with near radius ``rc``."""
+    if outside is None:
+        outside = outside_centres(centres, tree, rc)
+    if len(outside):
+        mask = np.ones(len(centres), bool)
+        mask[outside] = False
+        core = centres[mask]
+    else:
+        core = centres
+    return outside, core.min(axis=0), core.max(axis=0), len(core)
+
+
+def grid_plan(kernel, centres, tree, eps: float, neighbours: int | None = None, radius: float | None = None,
+              outside=None, box=None, near: bool = True, memo: dict | None = None) -> dict:
+    """What a :class:`GridSum` with these arguments would take, without building it.
+
+    Parameters
+    ----------
+    kernel : MultiOrder
+    centres : (N, 3) array
+    tree : cKDTree
+        Of ``centres``.
+    eps, neighbours, radius, outside
+        As for :class:`GridSum`.
+    box : (2, 3) array_like, optional
+        A box the grid must cover too (:meth:`GridSum.cover`).
+    near : bool
+        Count the stored near-field matrix (products at the centres build it;
+        evaluation at targets does not).
+    memo : dict, optional
+        Neighbour radii already found on this tree, by neighbour count (filled in).
+
+    Returns
+    -------
+    dict
+        ``grid`` (the kernel transform, kept), ``work`` (the transforms of
+        one product, freed after it), ``near`` (sparse matrix), ``potential``
+        (one grid potential), bytes; ``h``, ``radius`` (design), ``outside``.
+    """
+    n = len(centres)
+    e = clip_eps(eps)
+    if radius is None:
+        k = default_neighbours(n) if neighbours is None else neighbours
+        memo = {} if memo is None else memo
+        if k not in memo:
+            memo[k] = neighbour_radius(centres, tree, k)
+        radius = memo[k]
+    rc = float(radius)
+    sigma, _, h, half = split_design(rc, e / 10)
+    outside, lo, hi, n_core = _core_box(centres, tree, rc, outside)
+    if box is not None:
+        lo, hi = np.minimum(lo, box[0]), np.maximum(hi, box[1])
+    grid = Mesh.nbytes(lo, hi, h, half, e >= 1e-4, "kept")
+    work = Mesh.nbytes(lo, hi, h, half, e >= 1e-4, "work")
+    pad = (half + 2) * h
+    cells = float(np.prod([math.ceil((hi[i] - lo[i] + 2 * pad) / h) + 1 for i in range(3)]))
+    nnz = 0.0
+    if near:
+        cut = near_table(kernel, rc, sigma, e / 10)[0]
+        sample = centres[np.random.default_rng(1).choice(n, min(n, 1000), replace=False)]
+        nnz = float(np.mean(tree.query_ball_point(sample, cut, return_length=True))) * n_core
+    return {"grid": int(grid), "work": int(work), "near": int(NNZ_BYTES * nnz + 8 * n_core), "potential": int(8 * cells),
+            "h": h, "radius": rc, "outside": outside}
+
+
+def _twolevel_plan(kernel, centres, tree, lam_count, coarse_update_nnz, options=None) -> int:
+    """Bytes of a :class:`TwoLevel` on these centres with its default options (``options`` overrides)."""
+    o = {"neighbours": 64, "coarse_ratio": 8, "max_coarse": 6000, "exact_below": 3000, "dense_budget": 256 * 2**20,
+         "nested": 8, "nested_ratio": 24, "nested_eps": 1e-3}
+    o.update(options or {})
+    n = len(centres)
+    total = 2 * NNZ_BYTES * n * (o["neighbours"] + 1)  # the tapered near matrix (and its copy while built)
+    want = max(n // o["coarse_ratio"], 1)
+    nested = o["nested"] and n > o["exact_below"] and want > o["max_coarse"] and n > o["nested_ratio"] * o["max_coarse"]
+    mc = n if n <= o["exact_below"] else min(want, n if nested else o["max_coarse"], n)
+    if mc < n:
+        total += min(8 * n * mc, o["dense_budget"]) if 8 * n * mc <= o["dense_budget"] else int(coarse_update_nnz * mc / n) * NNZ_BYTES
+    if not nested:
+        return int(total + 1.5 * 8 * mc * mc)
+    sub_idx = np.sort(np.random.default_rng(2).choice(n, mc, replace=False))
+    sub = centres[sub_idx]
+    sub_tree = cKDTree(sub)
+    g = grid_plan(kernel, sub, sub_tree, max(o["nested_eps"], 1e-8), neighbours=product_neighbours(mc))
+    inner = _twolevel_plan(kernel, sub, sub_tree, mc, g["near"] / NNZ_BYTES, o)
+    krylov = 2 * (o["nested"] + 2) * mc * 8
+    return int(total + g["grid"] + g["near"] + inner + krylov + _PER_CENTRE_BYTES * mc)  # (its work: below the outer's)
+
+
+def memory_plan(kernel, centres, rtol: float = 1e-6, eps: float | None = None, restart: int = 50, tree: cKDTree | None = None,
+                preconditioner: dict | None = None, evaluation: bool = True, evaluation_eps: float = DEFAULT_EPS,
+                box=None, extraction_bytes: int = 0, limit: int | None = None) -> dict:
+    """Peak bytes of a fast fit on these centres (and of evaluating and meshing it), without building anything.
+
+    It follows the solve as it runs: during FGMRES the products at the
+    solve's tolerance and their two looser companions (each a grid and a
+    near-field matrix), the two-level preconditioner (tapered near field,
+    coarse Cholesky or the nested level with its own grid), the Krylov
+    basis; at the end the evaluator's grid joins the products; meshing
+    holds the evaluator's grid enlarged to ``box`` and ``extraction_bytes``.
+    Kernels or tolerances the grid does not take are estimated by
+    :func:`fast_memory`.
+
+    Parameters
+    ----------
+    kernel : Kernel
+    centres : (N, 3) array
+    rtol : float
+        Relative residual of the solve; the products' tolerance is
+        :func:`product_tolerance` of it unless ``eps`` is given.
+    eps : float, optional
+    restart : int
+    tree : cKDTree, optional
+        Of ``centres``.
+    preconditioner : dict, optional
+        Options of :class:`TwoLevel`.
+    evaluation : bool
+        Count the evaluator (:func:`make_evaluator`) and meshing.
+    evaluation_eps : float
+    box : (2, 3) array_like, optional
+        The meshing lattice's box (default: the centres' box padded by 5 % of its span).
+    extraction_bytes : int
+        Marching cubes' own arrays (:func:`o3drbf.options.extraction_memory`).
+    limit : int, optional
+        The memory limit the products' near-field size follows
+        (:func:`product_neighbours`); default :func:`memory_limit_or_default`.
+
+    Returns
+    -------
+    dict
+        ``total`` (the peak, bytes), ``fit``, ``end_of_fit``, ``mesh``
+        (the three phases), ``parts`` (bytes by piece) and ``route``
+        ("grid" or "fmm").
+    """
+    centres = np.ascontiguousarray(centres, dtype=float)
+    n = len(centres)
+    e = product_tolerance(rtol) if eps is None else clip_eps(eps)
+    grid_ok = HAVE_GRID and isinstance(kernel, MultiOrder) and kernel.coefficients is not None and e >= 1e-8 and n >= 64
+    if not grid_ok:
+        need = fast_memory(n, restart, e)
+        return {"total": need, "fit": need, "end_of_fit": need, "mesh": need, "parts": {}, "route": "fmm"}
+    tree = cKDTree(centres) if tree is None else tree
+    base = _PER_CENTRE_BYTES * n
+    memo = {}
+    main = grid_plan(kernel, centres, tree, e, neighbours=product_neighbours(n, limit), memo=memo)
+    out = main["outside"]
+    parts = {"grid": main["grid"], "near": main["near"]}
+    work = [main["work"]]
+    rc300 = neighbour_radius(centres, tree, min(300, max(n // 300, 64)))
+    tier_nnz = 0
+    for tol in (1e-3, 1e-4):
+        if tol >= 10 * e:
+            t = grid_plan(kernel, centres, tree, tol, radius=max(rc300, main["h"] / split_design(1.0, tol / 10)[2]), outside=out)
+            parts[f"grid {tol:g}"], parts[f"near {tol:g}"] = t["grid"], t["near"]
+            work.append(t["work"])
+            tier_nnz = t["near"] / NNZ_BYTES if tol == 1e-3 else tier_nnz
+    parts["preconditioner"] = _twolevel_plan(kernel, centres, tree, n, tier_nnz or main["near"] / NNZ_BYTES, preconditioner)
+    parts["krylov"] = int(2 * (restart + 1) * (n + 4) * 8 + 3 * n * 4 * 8)
+    products = sum(v for k, v in parts.items() if k.startswith(("grid", "near")))
+    fit = base + products + parts["preconditioner"] + parts["krylov"] + max(work)
+    end = mesh = 0
+    if evaluation:
+        if box is None:
+            _, lo, hi, _ = _core_box(centres, tree, main["radius"], out)
+            pad = 0.05 * float((hi - lo).max())
+            box = np.stack([lo - pad, hi + pad])
+        at_centres = grid_plan(kernel, centres, tree, evaluation_eps, near=False, outside=out, memo=memo)
+        at_box = grid_plan(kernel, centres, tree, evaluation_eps, near=False, box=np.asarray(box, dtype=float), outside=out,
+                           memo=memo)
+        parts["evaluator"] = at_box["grid"] + at_box["potential"]
+        end = base + products + at_centres["grid"] + at_centres["potential"] + max(work + [at_centres["work"]])
+        mesh = base + parts["evaluator"] + at_box["work"] + int(extraction_bytes)
+    return {"total": int(max(fit, end, mesh)), "fit": int(fit), "end_of_fit": int(end), "mesh": int(mesh), "parts": parts,
+            "route": "grid"}
+
+
+def check_memory(n: int, restart: int = 50, eps: float = 1e-6, memory_limit: int | None = None, kernel=None, centres=None,
+                 **plan) -> dict | None:
+    """Refuse, before anything is built, a fast solve that would not fit in ``memory_limit`` bytes.
+
+    With ``kernel`` and ``centres`` the need is :func:`memory_plan`'s (``plan``
+    holds its other arguments), else :func:`fast_memory`'s.  The limit
+    defaults to 80 % of the memory available now.
+
+    Returns
+    -------
+    dict or None
+        The plan (None without centres).
+
+    Raises
+    ------
+    MemoryRefusal
+        Naming the need, the limit and the share of the constraints that would fit.
+    """
+    limit = memory_limit_or_default(memory_limit)
+    result = None
+    if centres is not None and kernel is not None:
+        result = memory_plan(kernel, centres, eps=eps, restart=restart, limit=limit, **plan)
+        need = result["total"]
+    else:
+        need = fast_memory(n, restart, eps)
+    if need > limit:
+        fraction = None
+        if centres is not None and kernel is not None:
+            fraction = fitting_fraction(kernel, centres, limit, eps=eps, restart=restart, limit=limit, **plan)
+        raise MemoryRefusal(f"a fast solve of {n} constraints", need, limit, fraction=fraction,
+                            cli_hint="use fewer constraints (--surface-count) or --tiles auto")
+    return result
+
+
+def fitting_fraction(kernel, centres, fit_in: int, **plan) -> float:
+    """About the largest share of ``centres`` (a seeded random subset, like a sparser subsample) whose
+    :func:`memory_plan` (with ``plan``) fits in ``fit_in`` bytes (0 if not even 1 % does)."""
+    n = len(centres)
+    rng = np.random.default_rng(3)
+    order = rng.permutation(n)
+    frac = 1.0
+    need = memory_plan(kernel, centres, **plan)["total"]
+    for _ in range(8):
+        frac *= min(0.9, max(0.2, (fit_in / need) ** 1.25))
+        m = int(frac * n)
+        if m < max(100, n // 100):
+            return 0.0
+        need = memory_plan(kernel, centres[np.sort(order[:m])], **plan)["total"]
+        if need <= fit_in:
+            return frac
+    return 0.0

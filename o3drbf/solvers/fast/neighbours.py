@@ -1,0 +1,248 @@
+"""Neighbour lists: KD-tree pair chunks and sparse matrices, the compiled cell list, near-field sizes."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+from o3drbf.solvers.base import memory_limit_or_default
+
+__all__ = ["HAVE_GRID", "NNZ_BYTES", "PRODUCT_NEIGHBOURS_MAX", "pairs_chunks", "mean_neighbours", "sparse_matrix",
+           "CellList", "default_neighbours", "product_neighbours", "neighbour_radius"]
+
+#: Bytes per stored sparse entry (float64 value, int32 column index).
+NNZ_BYTES = 12
+#: Pairs handled per chunk when building neighbour lists / summing sparse terms.
+PAIR_CHUNK = 8_000_000
+
+try:  # numba is a dependency; without it the grid backend is unavailable
+    import numba
+
+    njit, prange, HAVE_GRID = numba.njit, numba.prange, True
+except ImportError:  # pragma: no cover
+    HAVE_GRID = False
+
+    def njit(*a, **k):
+        return lambda f: f
+
+    prange = range
+
+
+def pairs_chunks(tree_s: cKDTree, targets: np.ndarray, radius: float, per_target: float):
+    """Yield (offset, i, j, r) for target chunks: all sources within ``radius`` of each target."""
+    m = len(targets)
+    step = max(1, int(PAIR_CHUNK / max(per_target, 1.0)))
+    for start in range(0, m, step):
+        t = targets[start : start + step]
+        tt = cKDTree(t)
+        arr = tt.sparse_distance_matrix(tree_s, radius, output_type="ndarray")
+        yield start, len(t), arr["i"].astype(np.int64), arr["j"].astype(np.int64), arr["v"]
+
+
+def mean_neighbours(tree_s: cKDTree, targets: np.ndarray, radius: float, sample: int = 2000) -> float:
+    """Average number of sources within ``radius`` of a target (from a sample)."""
+    if len(targets) == 0:
+        return 0.0
+    rng = np.random.default_rng(0)
+    idx = rng.choice(len(targets), min(sample, len(targets)), replace=False)
+    counts = tree_s.query_ball_point(targets[idx], radius, return_length=True)
+    return float(np.mean(counts))
+
+
+def sparse_matrix(tree_s, targets, radius, value, per_target, n_sources, drop_self=False):
+    """CSR matrix of ``value(r, i, j)`` over all (target i, source j) pairs with r <= radius."""
+    blocks = []
+    for start, m, i, j, r in pairs_chunks(tree_s, targets, radius, per_target):
+        if drop_self:
+            keep = (i + start) != j
+            i, j, r = i[keep], j[keep], r[keep]
+        v = value(r, i + start, j)
+        blocks.append(sp.csr_matrix((v, (i, j)), shape=(m, n_sources)))
+    if not blocks:
+        return sp.csr_matrix((0, n_sources))
+    return sp.vstack(blocks, format="csr")
+
+
+@njit(cache=True)
+def _cell_keys(pts, lo, cell, dims):
+    n = pts.shape[0]
+    key = np.empty(n, np.int64)
+    for p in range(n):
+        i = min(max(int((pts[p, 0] - lo[0]) / cell), 0), dims[0] - 1)
+        j = min(max(int((pts[p, 1] - lo[1]) / cell), 0), dims[1] - 1)
+        k = min(max(int((pts[p, 2] - lo[2]) / cell), 0), dims[2] - 1)
+        key[p] = (i * dims[1] + j) * dims[2] + k
+    return key
+
+
+# What one pass of the near-field loop does with each pair within the radius.
+_COUNT, _FILL, _SUM, _SUM_GRAD = 0, 1, 2, 3
+
+
+@njit(cache=True, parallel=True)
+def _near_pass(mode, tp, sp_, order, start, lo, cell, dims, rc, tab, dtab, dr, wsorted, counts, indptr, indices, data,
+               out, grad):
+    """The one loop over (target, source) pairs within ``rc``, by the 27 cells around each target.
+
+    ``mode`` _COUNT: ``counts[p]`` = pairs of target p; _FILL: the CSR row p (``indptr``, ``indices``
+    = source index, ``data`` = table value); _SUM / _SUM_GRAD: ``out[p] += sum_q w_q tab(r_pq)`` (and
+    ``grad[p] += sum_q w_q dtab(r_pq) (t_p - s_q)``).  The table is linearly interpolated at ``r / dr``."""
+    m = tp.shape[0]
+    rc2 = rc * rc
+    nt = tab.shape[0]
+    for p in prange(m):
+        i0 = int((tp[p, 0] - lo[0]) / cell); j0 = int((tp[p, 1] - lo[1]) / cell); k0 = int((tp[p, 2] - lo[2]) / cell)
+        c = indptr[p] if mode == _FILL else 0
+        acc = 0.0; g0 = 0.0; g1 = 0.0; g2 = 0.0
+        for i in range(max(i0 - 1, 0), min(i0 + 2, dims[0])):
+            for j in range(max(j0 - 1, 0), min(j0 + 2, dims[1])):
+                for k in range(max(k0 - 1, 0), min(k0 + 2, dims[2])):
+                    key = (i * dims[1] + j) * dims[2] + k
+                    for q in range(start[key], start[key + 1]):
+                        d0 = tp[p, 0] - sp_[q, 0]; d1 = tp[p, 1] - sp_[q, 1]; d2 = tp[p, 2] - sp_[q, 2]
+                        r2 = d0 * d0 + d1 * d1 + d2 * d2
+                        if r2 > rc2:
+                            continue
+                        if mode == _COUNT:
+                            c += 1
+                            continue
+                        x = math.sqrt(r2) / dr
+                        ii = min(int(x), nt - 2)
+                        f = x - ii
+                        v = tab[ii] * (1 - f) + tab[ii + 1] * f
+                        if mode == _FILL:
+                            indices[c] = order[q]
+                            data[c] = v
+                            c += 1
+                        else:
+                            acc += wsorted[q] * v
+                            if mode == _SUM_GRAD:
+                                g = wsorted[q] * (dtab[ii] * (1 - f) + dtab[ii + 1] * f)
+                                g0 += g * d0; g1 += g * d1; g2 += g * d2
+        if mode == _COUNT:
+            counts[p] = c
+        elif mode != _FILL:
+            out[p] += acc
+            if mode == _SUM_GRAD:
+                grad[p, 0] += g0; grad[p, 1] += g1; grad[p, 2] += g2
+
+
+class CellList:
+    """Points binned into cubic cells of side ``radius``, for the pairs of targets and points within ``radius``.
+
+    One compiled loop (over the 27 cells around each target) serves both uses:
+    the sparse matrix of a tabulated radial function over those pairs
+    (:meth:`matrix`) and its sum with weights, with gradients (:meth:`add_sum`).
+
+    Parameters
+    ----------
+    points : (N, 3) array
+        The sources.
+    radius : float
+        Pairs farther apart are left out.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> pts = np.array([[0.0, 0, 0], [0.5, 0, 0], [3.0, 0, 0]])
+    >>> tab = np.linspace(1.0, 0.0, 11)   # 1 - r sampled on [0, 1], every tenth
+    >>> CellList(pts, 1.0).matrix(pts, tab, 0.1).toarray().round(2)
+    array([[1. , 0.5, 0. ],
+           [0.5, 1. , 0. ],
+           [0. , 0. , 1. ]])
+    """
+
+    def __init__(self, points, radius: float):
+        pts = np.ascontiguousarray(points, dtype=float)
+        self.radius = float(radius)
+        self.n = len(pts)
+        self.lo = pts.min(axis=0)
+        self.dims = np.maximum(np.ceil((pts.max(axis=0) - self.lo) / self.radius).astype(np.int64), 1)
+        key = _cell_keys(pts, self.lo, self.radius, self.dims)
+        self.order = np.argsort(key, kind="stable")
+        self.start = np.searchsorted(key[self.order], np.arange(int(np.prod(self.dims)) + 1)).astype(np.int64)
+        self.sorted = np.ascontiguousarray(pts[self.order])
+
+    def _pass(self, mode, targets, tab, dtab, dr, wsorted, counts, indptr, indices, data, out, grad):
+        _near_pass(mode, targets, self.sorted, self.order.astype(np.int32), self.start, self.lo, self.radius, self.dims,
+                   self.radius, tab, dtab, dr, wsorted, counts, indptr, indices, data, out, grad)
+
+    def matrix(self, targets, tab, dr: float) -> sp.csr_matrix:
+        """CSR matrix (targets x points) of ``tab`` (sampled every ``dr``, interpolated linearly) at each
+        pair's distance, over the pairs within the radius.
+
+        Parameters
+        ----------
+        targets : (M, 3) float array, C-contiguous
+        tab : (T,) array
+            The function at ``r = 0, dr, 2 dr, ...``; it must reach beyond the radius.
+        dr : float
+        """
+        m = len(targets)
+        i64, f64 = np.zeros(1, np.int64), np.zeros(1)
+        counts = np.zeros(m, np.int64)
+        self._pass(_COUNT, targets, tab, tab, dr, f64, counts, i64, np.zeros(1, np.int32), f64, f64, np.zeros((1, 3)))
+        indptr = np.zeros(m + 1, np.int64)
+        np.cumsum(counts, out=indptr[1:])
+        del counts
+        indices = np.empty(indptr[-1], np.int32)
+        data = np.empty(indptr[-1])
+        self._pass(_FILL, targets, tab, tab, dr, f64, i64, indptr, indices, data, f64, np.zeros((1, 3)))
+        return sp.csr_matrix((data, indices, indptr), shape=(m, self.n))
+
+    def add_sum(self, targets, w, tab, dtab, dr: float, out, grad=None) -> None:
+        """``out += sum_j w_j tab(|t - p_j|)`` over the points within the radius of each target (and, with
+        ``grad``, ``grad += sum_j w_j dtab(|t - p_j|) (t - p_j)``, ``dtab`` being tab' / r), in place.
+
+        Parameters
+        ----------
+        targets : (M, 3) float array, C-contiguous
+        w : (N,) array
+            One weight a point, in the points' order.
+        tab, dtab : (T,) arrays
+        dr : float
+        out : (M,) array
+        grad : (M, 3) array, optional
+        """
+        i64, f64 = np.zeros(1, np.int64), np.zeros(1)
+        mode = _SUM if grad is None else _SUM_GRAD
+        self._pass(mode, targets, tab, dtab, dr, np.ascontiguousarray(w[self.order], dtype=float), i64, i64,
+                   np.zeros(1, np.int32), f64, out, np.zeros((1, 3)) if grad is None else grad)
+
+
+def default_neighbours(n: int) -> int:
+    """Near-field size of a grid on ``n`` centres when none is given: N / 100 within [100, 1000]."""
+    return min(max(n // 100, 100), 1000)
+
+
+#: Most near-field neighbours of the products at the centres (:func:`product_neighbours`): more make
+#: a product a little cheaper in CPU but its sparse near part (and the peak memory) much larger.
+PRODUCT_NEIGHBOURS_MAX = 1000
+
+
+def product_neighbours(n: int, limit: int | None = None) -> int:
+    """Near-field size of the grid products of a fit on ``n`` centres.
+
+    More neighbours make the grid coarser (FFT nodes fall as k^-1.5 on a
+    surface) and the sparse near part larger (~0.6 k entries a row); the
+    FFTs cost far more per node than a sparse entry, so the products use up
+    to ``PRODUCT_NEIGHBOURS_MAX`` neighbours, as many as keep the near parts
+    (the product's and its two companions', ~1.7 k entries a row) within 30 %
+    of ``limit`` bytes (default :func:`memory_limit_or_default`), and never
+    fewer than :func:`default_neighbours`."""
+    limit = memory_limit_or_default(limit)
+    fit = int(0.3 * limit / (max(n, 1) * NNZ_BYTES * 1.1))
+    return int(min(max(fit, default_neighbours(n)), PRODUCT_NEIGHBOURS_MAX, max(n // 16, default_neighbours(n))))
+
+
+def neighbour_radius(centres, tree: cKDTree, k: int) -> float:
+    """Median distance from a seeded sample of 2,000 centres to their ``k``-th nearest centre (self included)."""
+    n = len(centres)
+    rng = np.random.default_rng(0)
+    sample = centres[rng.choice(n, min(n, 2000), replace=False)]
+    k = int(min(max(k, 8), max(n // 4, 2)))
+    d, _ = tree.query(sample, k=k)
+    return max(float(np.median(d[:, -1])), 1e-6 * max(float(np.ptp(centres, axis=0).max()), 1e-300))

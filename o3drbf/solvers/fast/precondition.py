@@ -1,0 +1,220 @@
+"""The two-level preconditioner of the fast solve: a coarse level (Cholesky or nested FGMRES) and a
+tapered near-field local step."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+
+from o3drbf.rbf.sums import kernel_matrix
+from o3drbf.solvers.fast.fgmres import fgmres
+from o3drbf.solvers.fast.fmm import FastSum
+from o3drbf.solvers.fast.grid import GridSum, fast_operator
+from o3drbf.solvers.fast.neighbours import sparse_matrix
+
+__all__ = ["TwoLevel"]
+
+
+def _uniform_subset(points: np.ndarray, count: int) -> np.ndarray:
+    """About ``count`` indices spread uniformly over the points (one per voxel)."""
+    n = len(points)
+    if count >= n:
+        return np.arange(n)
+    lo = points.min(axis=0)
+    span = max(float(np.ptp(points, axis=0).max()), 1e-12)
+    best = None
+    # Bisection on the voxel size so that the occupied-voxel count ~ count.
+    hi_h, lo_h = span, span * 1e-4
+    for _ in range(30):
+        h = math.sqrt(hi_h * lo_h)
+        key = np.floor((points - lo) / h).astype(np.int64)
+        _, first = np.unique(key, axis=0, return_index=True)
+        if best is None or abs(len(first) - count) < abs(len(best) - count):
+            best = first
+        if len(first) > count:
+            lo_h = h
+        else:
+            hi_h = h
+        if abs(len(first) - count) <= 0.05 * count:
+            break
+    return np.sort(best)
+
+
+def _subset_operator(fast, subset, eps):
+    """The same kind of product on ``fast.centres[subset]`` (for a nested coarse level)."""
+    cen = fast.centres[subset]
+    if isinstance(fast, GridSum):  # the grid when it fits its budget, else fmm3dpy
+        return fast_operator(fast.kernel, cen, eps=max(eps, fast.eps), backend="auto")
+    if isinstance(fast, FastSum):
+        return FastSum(fast.kernel, cen, eps=max(eps, fast.eps), workers=fast.workers)
+    return type(fast)(fast.kernel, cen)
+
+
+class TwoLevel:
+    """Two-level multiplicative preconditioner for ``Phi + diag(lam)``.
+
+    Parameters
+    ----------
+    fast : FastSum
+        The operator (its centres and kernel).
+    lam : (N,) array
+    neighbours : int
+        k of the tapered near-field matrix.
+    coarse_ratio, max_coarse : int
+        Coarse level size ``N / coarse_ratio``, solved by Cholesky up to
+        ``max_coarse`` centres; above it, capped at ``max_coarse`` when
+        ``nested`` is 0, else solved by nested steps.
+    inner : int
+        CG steps on the near-field matrix.
+    damping : float
+        The near-field diagonal phi(0) - phi(R) is multiplied by this (a
+        damped local step after the coarse correction).
+    exact_below : int
+        Up to this N the "coarse" level is all centres: an exact Cholesky
+        preconditioner (one iteration).
+    select : {"uniform", "random"}
+        How the coarse centres are picked (one per voxel, or at random).
+    eps : float
+        Tolerance of the coarse-to-fine residual update (when not dense).
+    dense_budget : int
+        Bytes allowed for storing the (N, |C|) coarse-to-fine block.
+    nested : int
+        FGMRES steps for a coarse level above ``max_coarse`` (0: cap it at
+        ``max_coarse`` instead).  The steps are preconditioned by a
+        TwoLevel on the coarse centres (same parameters, so recursive).
+    nested_eps : float
+        Tolerance of the products on the coarse centres (nested level).
+    nested_rtol : float
+        Relative residual that stops the nested steps early (0: always
+        ``nested`` steps).
+    nested_ratio : float
+        Nest only when ``N > nested_ratio * max_coarse`` (144,000 by
+        default); below it the coarse level is capped.
+    """
+
+    def __init__(self, fast: FastSum, lam, neighbours=64, coarse_ratio=8, max_coarse=6000, inner=10,
+                 eps=1e-2, dense_budget=256 * 2**20, select="uniform", exact_below=3000, damping=2.0,
+                 nested=8, nested_eps=1e-3, nested_rtol=0.0, nested_ratio=24):
+        kernel, x = fast.kernel, fast.centres
+        n = len(x)
+        self.fast, self.lam, self.inner, self.eps = fast, np.asarray(lam, float), int(inner), eps
+        t0 = time.perf_counter()
+        # Near field: tapered kernel phi(r) - phi(R) on ~k neighbours.
+        k = min(neighbours, n - 1)
+        if k >= 1:
+            d, _ = fast.tree.query(x, k=k + 1)
+            radius = float(np.median(d[:, -1]))
+            phir = float(kernel(np.array([radius]))[0])
+            s = sparse_matrix(
+                fast.tree, x, radius, lambda r, i, j: kernel(r) - phir, k + 1, n, drop_self=True
+            )
+            diag = damping * (fast.phi0 - phir) + self.lam
+        else:
+            radius, s, diag = 0.0, sp.csr_matrix((n, n)), fast.phi0 + self.lam
+        self.near = (s + sp.diags(diag)).tocsr()
+        self.near_diag = np.asarray(diag, dtype=float)
+        self.radius = radius
+        # Coarse level.
+        want = max(n // coarse_ratio, 1)
+        self.nested = int(nested) if n > exact_below and want > max_coarse and n > nested_ratio * max_coarse else 0
+        mc = n if n <= exact_below else min(want, n if self.nested else max_coarse, n)
+        if select == "random" and mc < n:
+            self.coarse = np.sort(np.random.default_rng(0).choice(n, mc, replace=False))
+        else:
+            self.coarse = _uniform_subset(x, mc)
+        xc = x[self.coarse]
+        self.factor = self.inner_level = None
+        if self.nested:
+            # The coarse system is too big for Cholesky: solve it loosely by a
+            # few FGMRES steps preconditioned by the same scheme (recursively).
+            sub = _subset_operator(fast, self.coarse, nested_eps)
+            self.inner_level = TwoLevel(sub, self.lam[self.coarse], neighbours=neighbours,
+                                        coarse_ratio=coarse_ratio, max_coarse=max_coarse, inner=inner, eps=eps,
+                                        dense_budget=dense_budget, select=select, exact_below=exact_below,
+                                        damping=damping, nested=nested, nested_eps=nested_eps,
+                                        nested_rtol=nested_rtol, nested_ratio=nested_ratio)
+            self._sub, self._sub_lam, self._sub_eps = sub, self.lam[self.coarse], nested_eps
+            self._sub_rtol = float(nested_rtol)
+        else:
+            acc = kernel_matrix(kernel, xc)
+            acc[np.diag_indices(len(xc))] += self.lam[self.coarse]
+            self.factor = sla.cho_factor(acc, lower=True, overwrite_a=True, check_finite=False)
+            del acc
+        self.exact = len(self.coarse) == n
+        self.block = None
+        self.update = None
+        if not self.exact and n * len(self.coarse) * 8 <= dense_budget:
+            self.block = kernel_matrix(kernel, x, xc, order="C")
+        elif not self.exact:
+            self.update = fast.from_subset(self.coarse)
+        self.setup_seconds = time.perf_counter() - t0
+        self.info = {
+            "near_neighbours": k,
+            "near_radius": radius,
+            "near_nnz": int(self.near.nnz),
+            "coarse": len(self.coarse),
+            "coarse_update": "exact" if self.exact else ("dense block" if self.block is not None else "fast sum"),
+            "coarse_solve": (f"{self.nested} nested FGMRES steps" if self.nested else "Cholesky"),
+            "setup_seconds": self.setup_seconds,
+        }
+        if self.inner_level is not None:
+            self.info["inner"] = self.inner_level.info
+
+    def _coarse_to_fine(self, zc):
+        """(Phi + Lambda)[:, C] z_C."""
+        if self.block is not None:
+            out = self.block @ zc
+        else:
+            out = self.update(zc, self.eps)
+        out[self.coarse] += self.lam[self.coarse] * zc
+        return out
+
+    def _coarse_solve(self, rc):
+        """z_C ~ (Phi_CC + Lambda_C)^{-1} r_C: Cholesky, or a few nested FGMRES steps."""
+        if self.factor is not None:
+            return sla.cho_solve(self.factor, rc, check_finite=False)
+        sub, lam, e = self._sub, self._sub_lam, self._sub_eps
+
+        def product(v, rel=1.0):
+            return sub.matvec(v, eps=e) + lam * v
+
+        z, *_ = fgmres(product, rc, self.inner_level, self._sub_rtol, self.nested, self.nested, product, final=False)
+        return z
+
+    def __call__(self, r):
+        zc = self._coarse_solve(r[self.coarse])
+        z = np.zeros_like(r)
+        if self.exact:
+            z[self.coarse] = zc
+            return z
+        z[self.coarse] = zc
+        r2 = r - self._coarse_to_fine(zc)
+        z += _cg(self.near, self.near_diag, r2, self.inner)
+        return z
+
+
+def _cg(a, diag, b, steps):
+    """``steps`` Jacobi-preconditioned CG iterations for a x = b from x = 0."""
+    x = np.zeros_like(b)
+    r = b.copy()
+    z = r / diag
+    p = z.copy()
+    rz = r @ z
+    if rz == 0:
+        return x
+    for _ in range(steps):
+        ap = a @ p
+        alpha = rz / (p @ ap)
+        x += alpha * p
+        r -= alpha * ap
+        z = r / diag
+        rz_new = r @ z
+        if rz_new <= 1e-30 * rz:
+            break
+        p = z + (rz_new / rz) * p
+        rz = rz_new
+    return x

@@ -1,0 +1,55 @@
+"""The compiled cell list of the fast solver (o3drbf.solvers.fast.neighbours.CellList) against brute-force pair sums."""
+
+import numpy as np
+import pytest
+from scipy.spatial.distance import cdist
+
+from o3drbf.solvers.fast.neighbours import CellList
+
+
+def _table(radius):
+    """f(r) = cos(r) sampled finely beyond the radius, with f'(r) / r."""
+    dr = radius / 4000
+    r = np.arange(0.0, 1.5 * radius, dr)
+    tab = np.cos(r)
+    dtab = np.empty_like(r)
+    dtab[1:] = -np.sin(r[1:]) / r[1:]
+    dtab[0] = -1.0
+    return tab, dtab, dr
+
+
+@pytest.fixture
+def cloud():
+    rng = np.random.default_rng(4)
+    pts = rng.uniform(-1, 1, (700, 3))
+    targets = np.ascontiguousarray(np.vstack([rng.uniform(-1.2, 1.2, (300, 3)), pts[:50]]))  # some coincide with points
+    return pts, targets
+
+
+def test_matrix_holds_every_pair_within_the_radius_and_no_other(cloud):
+    pts, targets = cloud
+    radius = 0.3
+    tab, _, dr = _table(radius)
+    got = CellList(pts, radius).matrix(targets, tab, dr).toarray()
+    d = cdist(targets, pts)
+    assert ((got != 0) == (d <= radius)).all()  # cos(r) > 0 here: a stored entry is a pair within the radius
+    assert np.abs(got - np.where(d <= radius, np.cos(d), 0.0)).max() < 1e-7
+
+
+def test_sums_and_gradients_match_the_brute_force_pair_sums(cloud):
+    pts, targets = cloud
+    radius = 0.25
+    tab, dtab, dr = _table(radius)
+    w = np.random.default_rng(5).normal(size=len(pts))
+    out, grad = np.full(len(targets), 2.0), np.zeros((len(targets), 3))
+    CellList(pts, radius).add_sum(targets, w, tab, dtab, dr, out, grad)
+    d = cdist(targets, pts)
+    near = d <= radius
+    want = 2.0 + (np.where(near, np.cos(d), 0.0) * w).sum(axis=1)
+    coef = np.where(near & (d > 0), -np.sin(d) / np.where(d > 0, d, 1.0), 0.0) * w
+    want_grad = np.einsum("ij,ijk->ik", coef, targets[:, None, :] - pts[None, :, :])
+    assert np.abs(out - want).max() < 1e-6
+    assert np.abs(grad - want_grad).max() < 1e-5
+    only = np.full(len(targets), 2.0)
+    CellList(pts, radius).add_sum(targets, w, tab, dtab, dr, only)  # values alone: the same values
+    assert np.array_equal(only, out)
