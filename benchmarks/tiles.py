@@ -6,10 +6,10 @@ spheres, a cube and a small torus.  The points are written once to a binary
 PLY; both methods start from that file in their own process (so each peak
 memory is its own):
 
-- o3drbf (first): ``reconstruct_tiled`` on the memory-mapped file (chunked passes,
-  per-tile point files; the client never holds all the points), a
-  LocalCluster of ``--workers`` processes x 1 thread with ``--memory-limit``
-  per worker, the fit and the tiled marching cubes on the same cluster;
+- o3drbf (first): the command a user runs, ``o3drbf reconstruct scene.ply --tiles auto -o mesh.ply``
+  with its defaults (a memory-mapped file, chunked passes, per-tile point files, a LocalCluster of
+  its default workers, the tiled marching cubes at its automatic resolution), timed from process
+  start to the mesh written;
 - Open3D screened Poisson, depth 10 (``--depth11`` adds depth 11), reading
   the same file.
 
@@ -19,7 +19,7 @@ mesh size, closed-manifold, components, distance of the vertices to the
 analytic surface), the ratio of times, and the per-tile records (time per
 tile, per constraint).
 
-    .venv/bin/python benchmarks/tiles.py [--points 1000000] [--workers 2] [--resolution auto] [--depth11]
+    .venv/bin/python benchmarks/tiles.py [--points 1000000] [--workers N] [--resolution auto] [--depth11] [--keep DIR]
     .venv/bin/python benchmarks/tiles.py --large      # 10,000,000 points (opt-in: make bench-tiles-large)
 """
 
@@ -103,20 +103,36 @@ def _poisson(path, depth, queue):
     queue.put({"seconds": seconds, "peak": _peak_rss(), "vertices": np.asarray(mesh.vertices), "triangles": np.asarray(mesh.triangles)})
 
 
-def _tiled(path, workers, memory_limit, resolution, tiles, queue):
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    logging.getLogger("distributed").setLevel(logging.WARNING)
-    from o3drbf.io.files import open_ply_vertices
-    from o3drbf.tiles.run import reconstruct_tiled
+def _tiled(path, workers, resolution, tiles, out_dir):
+    """The user's command on the file: ``o3drbf reconstruct scene.ply --tiles auto -o mesh.ply`` (defaults otherwise).
 
+    Timed from process start to the mesh written; ``--save-model`` keeps the per-tile records for the
+    tables below. Returns the record, the command's closing summary and the mesh arrays.
+    """
+    import resource
+    import subprocess
+
+    import open3d as o3d
+
+    from o3drbf.tiles.surface import TiledSurface
+
+    mesh_path, model_path = Path(out_dir) / "o3drbf.ply", Path(out_dir) / "o3drbf.npz"
+    cmd = [str(Path(sys.executable).with_name("o3drbf")), "reconstruct", str(path), "--tiles", str(tiles), "-o", str(mesh_path),
+           "--save-model", str(model_path)]
+    cmd += [] if workers is None else ["--workers", str(workers)]
+    cmd += [] if resolution == "auto" else ["--resolution", str(resolution)]
+    logging.info("%s", " ".join(cmd))
     t0 = time.perf_counter()
-    surf, mesh, stats = reconstruct_tiled(open_ply_vertices(path), tiles=tiles, workers=workers, memory_limit=memory_limit,
-                                          resolution=resolution)
+    run = subprocess.run(cmd, capture_output=True, text=True)
     seconds = time.perf_counter() - t0
-    meta = surf.metadata
-    queue.put({"seconds": seconds, "peak": _peak_rss(), "vertices": np.asarray(mesh.vertices), "triangles": np.asarray(mesh.triangles),
-               "stats": stats, "tiles": meta["tiles"], "base": meta["base"], "spread_seconds": meta["spread_seconds"],
-               "tiles_seconds": meta["tiles_seconds"]})
+    if run.returncode != 0:
+        raise RuntimeError(f"o3drbf exited with {run.returncode}: {run.stderr.strip()[-2000:]}")
+    mesh = o3d.io.read_triangle_mesh(str(mesh_path))
+    with np.load(model_path) as model:
+        tiled = "counts" in model.files  # --tiles auto runs untiled when the input fits (and says so)
+    meta = TiledSurface.load(model_path).metadata if tiled else None
+    return {"seconds": seconds, "peak": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024, "summary": run.stdout.strip(),
+            "vertices": np.asarray(mesh.vertices), "triangles": np.asarray(mesh.triangles), "meta": meta}
 
 
 def in_process(target, *args):
@@ -159,9 +175,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--points", type=int, default=None, help="points (default 1M, or 10M with --large)")
     ap.add_argument("--large", action="store_true", help="10,000,000 points")
-    ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--memory-limit", default="8GiB", help="per worker (default %(default)s)")
-    ap.add_argument("--resolution", default="auto", help="lattice cells on the longest side; auto: 256 up to 2M points, else 512")
+    ap.add_argument("--workers", type=int, default=None, help="--workers of the command (default: its own)")
+    ap.add_argument("--resolution", default="auto", help="--resolution of the command (default: auto, its own)")
     ap.add_argument("--tiles", default="auto")
     ap.add_argument("--no-poisson", action="store_true")
     ap.add_argument("--depth11", action="store_true", help="also Open3D Poisson depth 11")
@@ -171,30 +186,31 @@ def main(argv=None) -> int:
     from o3drbf.io.files import write_points
 
     n = args.points or (10_000_000 if args.large else 1_000_000)
-    resolution = (256 if n <= 2_000_000 else 512) if args.resolution == "auto" else int(args.resolution)
     tiles = args.tiles if args.tiles == "auto" else int(args.tiles)
     folder = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="o3drbf-bench-"))
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"scene-{n}.ply"
     pts, nrm, sdf = scene(n)
-    t0 = time.perf_counter()
-    write_points(path, pts, nrm)
-    logging.info("scene: %s points written to %s (%.0f MB) in %.1f s", f"{n:,}", path, path.stat().st_size / 1e6, time.perf_counter() - t0)
+    if path.exists() and args.keep:
+        logging.info("scene: %s kept from an earlier run", path)
+    else:
+        t0 = time.perf_counter()
+        write_points(path, pts, nrm)
+        logging.info("scene: %s points written to %s (%.0f MB) in %.1f s", f"{n:,}", path, path.stat().st_size / 1e6, time.perf_counter() - t0)
     del pts, nrm
     rows, times = [], {}
     logging.info("o3drbf tiled ...")
-    r = in_process(_tiled, path, args.workers, args.memory_limit, resolution, tiles)
-    stats = r["stats"]
-    peaks = [w["peak_rss"] for w in stats["workers"].values()]
-    mem = ", ".join(f"{p / 2**30:.2f}" for p in peaks) + f" GiB/worker; client {r['peak'] / 2**30:.2f} GiB"
-    rows.insert(0, mesh_row(f"o3drbf tiles ({stats['tiles']} tiles, {args.workers} workers x 1 thread, res {resolution})",
-                         r["seconds"], mem, r["vertices"], r["triangles"], sdf))
+    r = _tiled(path, args.workers, args.resolution, tiles, folder)
+    meta = r["meta"]
+    if meta is None:
+        rows.insert(0, mesh_row(f"o3drbf reconstruct --tiles {tiles} (ran untiled: the input fits)", r["seconds"],
+                                f"{r['peak'] / 2**30:.2f} GiB", r["vertices"], r["triangles"], sdf))
+    else:
+        mem = ", ".join(f"{w['peak_rss'] / 2**30:.2f}" for w in meta["workers"].values())
+        mem += f" GiB/worker (fit); largest process {r['peak'] / 2**30:.2f} GiB"
+        rows.insert(0, mesh_row(f"o3drbf reconstruct --tiles {tiles} ({meta['tile_count']} tiles)", r["seconds"], mem, r["vertices"],
+                                r["triangles"], sdf))
     logging.info("%s", rows[0])
-    _sec = np.array([i["seconds"] for i in r["tiles"]])
-    _con = np.array([i["constraints"] for i in r["tiles"]])
-    logging.info("fit %.1f s (spread %.1f s, f0 %.1f s), extraction %.1f s (%s exact nodes); per tile fit median %.2f s, %.2f ms/constraint; workers %s",
-                 stats["fit_seconds"], r["spread_seconds"], r["base"]["seconds"], stats["extract_seconds"],
-                 f"{stats['extraction']['evaluated']:,}", np.median(_sec), 1e3 * np.median(_sec / np.maximum(_con, 1)), stats["workers"])
     depths = [] if args.no_poisson else ([10, 11] if args.depth11 else [10])
     for depth in depths:
         logging.info("Open3D Poisson depth %d ...", depth)
@@ -204,8 +220,9 @@ def main(argv=None) -> int:
         logging.info("%s (o3drbf / Poisson time %.2f)", rows[-1], r["seconds"] / p["seconds"])
         del p
     if not args.keep:
-        path.unlink()
-        os.rmdir(folder)
+        import shutil
+
+        shutil.rmtree(folder, ignore_errors=True)
     load = open("/proc/loadavg").read().split()[:3]
     print(f"\n{n:,} points (scene: long torus, 2 spheres, cube, small torus; noise {NOISE}); "
           f"load average after the run {' '.join(load)}; {os.cpu_count()} cores\n")
@@ -214,21 +231,19 @@ def main(argv=None) -> int:
     print("\n".join(rows))
     for depth, sec in times.items():
         print(f"\no3drbf / Poisson depth {depth} time: {r['seconds'] / sec:.2f}")
-    infos = r["tiles"]
+    if meta is None:
+        print("\nthe command's summary:\n" + r["summary"])
+        return 0
+    infos = meta["tiles"]
     sec = np.array([i["seconds"] for i in infos])
     con = np.array([i["constraints"] for i in infos])
-    ext = stats["extraction"]
-    c = stats["constraints"]
-    print(f"\nfit {stats['fit_seconds']:.1f} s (chunked spread to tile files {r['spread_seconds']:.1f} s; global f0 "
-          f"{r['base']['seconds']:.1f} s on {r['base']['constraints']} constraints; tiles {r['tiles_seconds']:.1f} s wall), "
-          f"extraction {stats['extract_seconds']:.1f} s (coarse {ext['coarse_seconds']:.1f} s, fine {ext['fine_seconds']:.1f} s, "
-          f"{ext['evaluated']:,} exact nodes, lattice {ext['lattice']})")
-    print(f"constraints per tile: min {c['min']:,}, median {c['median']:,.0f}, max {c['max']:,}; blend overlap {stats['overlap']:.0%}")
-    print(f"per tile fit: median {np.median(sec):.2f} s, max {sec.max():.2f} s "
-          f"({1e3 * np.median(sec / np.maximum(con, 1)):.2f} ms per constraint); per tile extraction "
-          f"{ext['fine_seconds'] * args.workers / len(infos):.2f} s worker time")
-    for name, w in stats["workers"].items():
-        print(f"worker {name}: {w['tasks']} tasks, {w['seconds']:.1f} s task time, peak {w['peak_rss'] / 2**30:.2f} GiB")
+    print(f"\nfit: chunked spread to tile files {meta['spread_seconds']:.1f} s; global f0 {meta['base']['seconds']:.1f} s on "
+          f"{meta['base']['constraints']} constraints; tiles {meta['tiles_seconds']:.1f} s wall")
+    print(f"constraints per tile: min {con.min():,}, median {np.median(con):,.0f}, max {con.max():,}; "
+          f"points per support: median {np.median([i['points'] for i in infos]):,.0f}, fitted from at most "
+          f"{max(i['used'] for i in infos):,} ({meta.get('subsampled_tiles', 0)} tiles subsampled)")
+    print(f"per tile fit: median {np.median(sec):.2f} s, max {sec.max():.2f} s ({1e3 * np.median(sec / np.maximum(con, 1)):.2f} ms per constraint)")
+    print("\nthe command's summary:\n" + r["summary"])
     return 0
 
 

@@ -400,7 +400,9 @@ def tiled_summary(stats: dict, input_path, output_path, seconds: float, mapped: 
           if stats.get("cameras") else []),
         *([f"  denoised         in {stats['denoised_tiles']} of {stats['tiles']} tiles (surface constraints moved onto local fits "
            "of the points)"] if stats.get("denoised_tiles") else []),
-        f"  tiles            {stats['tiles']}; constraints per tile min {c['min']:,}, median {c['median']:,.0f}, max {c['max']:,}",
+        f"  tiles            {stats['tiles']}; constraints per tile min {c['min']:,}, median {c['median']:,.0f}, max {c['max']:,}"
+        + (f"; {stats['subsampled_tiles']} fitted from a uniform subsample of their points (denser than their constraints need)"
+           if stats.get("subsampled_tiles") else ""),
         f"  blend overlap    {stats['overlap']:.0%} of each cell's half-size on every side (at least {stats['min_overlap']:g} box units)",
         f"  mesh             {stats['triangles']:,} triangles, {stats['vertices']:,} vertices",
         *([_watertight_line(report)] if report is not None else []),

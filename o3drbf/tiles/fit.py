@@ -55,7 +55,7 @@ from o3drbf.tiles.partition import (
 from o3drbf.tiles.surface import TiledSurface
 from o3drbf.validation import as_points, as_vectors, check_number, shown
 
-__all__ = ["fit_tiled", "fit_tile", "point_source", "tile_count", "tile_options", "TILE_DEFAULTS"]
+__all__ = ["fit_tiled", "fit_tile", "point_source", "tile_count", "surface_tile_cap", "mesh_cell_box", "tile_options", "TILE_DEFAULTS"]
 
 log = logging.getLogger("o3drbf")
 
@@ -63,20 +63,87 @@ log = logging.getLogger("o3drbf")
 TILE_DEFAULTS = OPTION_TILE_DEFAULTS
 
 
-def tile_count(n_points: int, tiles="auto", points_per_tile: int = TILE_DEFAULTS["points_per_tile"]) -> int:
+def tile_count(n_points: int, tiles="auto", points_per_tile: int = TILE_DEFAULTS["points_per_tile"], surface_cap: int | None = None) -> int:
     """Number of tiles: ``ceil(n_points / points_per_tile)`` for "auto" (or None), else ``tiles``.
+
+    Parameters
+    ----------
+    n_points : int
+    tiles : "auto", None or int
+    points_per_tile : int
+    surface_cap : int, optional
+        For "auto": at most this many tiles (:func:`surface_tile_cap`, the tiles
+        the surface needs at the mesh's resolution), at least one.
 
     Raises
     ------
     ValueError
         ``tiles`` not "auto" nor an integer in [1, n_points / 10].
+
+    Examples
+    --------
+    >>> tile_count(1_000_000), tile_count(10_000_000, surface_cap=20), tile_count(1000, tiles=3)
+    (17, 20, 3)
     """
     if tiles is None or isinstance(tiles, str):
         if tiles not in (None, "auto"):
             raise ValueError(f"tiles must be 'auto' or a positive integer, got {shown(tiles)}")
         ppt = check_number("points_per_tile", points_per_tile, low=100, integer=True)
-        return max(1, math.ceil(n_points / ppt))
+        count = max(1, math.ceil(n_points / ppt))
+        return count if surface_cap is None else max(1, min(count, int(surface_cap)))
     return check_number("tiles", tiles, low=1, high=max(1, n_points // 10), integer=True)
+
+
+def surface_tile_cap(sample_box: np.ndarray, cell_box: float, surface_count_per_tile: int | None) -> int | None:
+    """The most tiles ``tiles="auto"`` uses: enough for one surface constraint per voxel the surface crosses.
+
+    The voxels are ``constraint_cells`` (:data:`o3drbf.options.TILE_DEFAULTS`) marching-cubes cells
+    wide; more tiles would put the constraints closer than the mesh shows, at a cost that grows with
+    the number of points while the mesh does not change.
+
+    Parameters
+    ----------
+    sample_box : (M, 3) array
+        A uniform sample of the points (box coordinates), dense enough to cross every voxel.
+    cell_box : float
+        The marching-cubes cell (box units).
+    surface_count_per_tile : int or None
+        None (every point a constraint): no cap.
+
+    Returns
+    -------
+    int or None
+        ``ceil(occupied voxels / surface_count_per_tile)``.
+
+    Examples
+    --------
+    >>> u = np.random.default_rng(0).uniform(-1, 1, (20000, 2))
+    >>> plane = np.c_[u, np.zeros(len(u))]          # a 2 x 2 square: (2 / 0.075)**2 ~ 711 voxels of 0.1 * 0.75
+    >>> surface_tile_cap(plane, 0.1, 100)
+    8
+    """
+    if surface_count_per_tile is None or len(sample_box) == 0:
+        return None
+    size = TILE_DEFAULTS["constraint_cells"] * float(cell_box)
+    keys = np.floor((sample_box - sample_box.min(axis=0)) / size).astype(np.int64)
+    occupied = len(np.unique(keys[:, 0] + (keys[:, 1] << 21) + (keys[:, 2] << 42)))
+    return max(1, math.ceil(occupied / int(surface_count_per_tile)))
+
+
+def mesh_cell_box(options: Options, norm: Normalization, data_lo, data_hi) -> float:
+    """The marching-cubes cell (box units) of :func:`o3drbf.tiles.extract.extract_tiled` with these options.
+
+    ``resolution="auto"`` is taken at its finest (``AUTO_RESOLUTION["max_resolution"]``): the tiles'
+    constraints decide it, and the cap on their number must not depend on it.
+    """
+    from o3drbf.extract import AUTO_RESOLUTION
+
+    side = 1.1 * float((norm.forward(data_hi) - norm.forward(data_lo)).max())  # the extraction bounds: the data box padded by 5 %
+    eo = options.extract
+    if eo.voxel_size is not None:
+        return float(eo.voxel_size) * float(norm.scale)
+    res = AUTO_RESOLUTION["max_resolution"] if eo.resolution == "auto" else int(eo.resolution)
+    return side / res
 
 
 def tile_options(options: Options | None = None, **option_values) -> Options:
@@ -233,8 +300,13 @@ def fit_tile(t: int, store=None, base: ImplicitSurface | None = None, partition:
         return int(np.all((box_points >= lo) & (box_points < hi), axis=1).sum())
 
     info = {"tile": t, "points": int(len(data)), "owned": owned(box)}
-    del box
     seed = s["seed"] + 1 + t
+    limit = None if s["surface_count_per_tile"] is None else TILE_DEFAULTS["support_points_per_constraint"] * s["surface_count_per_tile"]
+    if limit is not None and len(data) > limit:  # denser than its constraints need: a seeded uniform subsample
+        pick = sample_indices(len(data), limit, seed)
+        data, box = data.subset(pick), box[pick]
+    info["used"], used_owned = int(len(data)), owned(box)
+    del box
     g = None
     if len(data) >= 10:
         if data.normals is not None and data.point_camera is not None:  # local rule: each normal toward its own scanner
@@ -256,7 +328,9 @@ def fit_tile(t: int, store=None, base: ImplicitSurface | None = None, partition:
                 outliers=int(outliers.removed), denoised=int(cset.denoised), noise=float(cset.noise), method=sol.method,
                 residual=float(sol.residual), robust_dropped=0 if robust is None else int(robust["dropped"]),
                 max_abs_target=float(np.abs(res).max()) if len(res) else 0.0)
-    info["owned_kept"] = owned(norm.forward(data.points)) if g is not None else 0
+    kept = owned(norm.forward(data.points)) if g is not None else 0
+    # Of the cell's points, those kept; from a subsample, the same fraction of all of them.
+    info["owned_kept"] = kept if used_owned == info["owned"] else int(round(kept * info["owned"] / max(used_owned, 1)))
     if g is None:
         kernel = make_kernel("multiorder", delta=10.0, tau=0.01)
         g = ImplicitSurface(kernel, partition.centre[t][None], np.zeros(1), np.zeros(1), Normalization.identity())
@@ -416,13 +490,17 @@ def fit_tiled(points, normals=None, *, cameras=None, point_camera=None, options:
     t_start, cpu = time.perf_counter(), {"start": time.process_time()}
     source, camera_list = point_source(points, normals, cameras=cameras, point_camera=point_camera, seed=seed)
     n = source.count
-    count = tile_count(n, to.tiles, to.points_per_tile)
 
     # One pass for the bounding box, one gather for the sample: never all the points at once.
     data_lo, data_hi = scan_bounds(source, to.chunk_points)
     norm = Normalization.from_points(np.array([data_lo, data_hi]))
     sample, camera_list, camera_map = _sample_points(source, camera_list, norm, opts, seed)
     sample_box = norm.forward(sample.points)
+    cap = surface_tile_cap(sample_box, mesh_cell_box(opts, norm, data_lo, data_hi), to.surface_count_per_tile)
+    count = tile_count(n, to.tiles, to.points_per_tile, surface_cap=cap)
+    if count < tile_count(n, to.tiles, to.points_per_tile):
+        log.info("tiles: %d tiles (not %d): more would put the surface constraints closer than the mesh shows; "
+                 "each tile fits from a uniform subsample of its points", count, tile_count(n, to.tiles, to.points_per_tile))
     cells_lo, cells_hi = kd_split(sample_box, count, _root_box(norm, data_lo, data_hi))
     occluders = sample_box if camera_list is not None else None  # what hides a camera from a tile, outside the tile
     del sample_box
@@ -489,6 +567,7 @@ def fit_tiled(points, normals=None, *, cameras=None, point_camera=None, options:
     c0 = cset0.constraints
     metadata = {
         "points": n,
+        "subsampled_tiles": int(sum(1 for i in infos if i["used"] < i["points"])),
         "kept": kept,
         "outliers": owned - kept,
         "denoised_tiles": int(sum(1 for i in infos if i.get("denoised"))),

@@ -86,18 +86,19 @@ def reconstruct_tiled(points, normals=None, *, cameras=None, point_camera=None, 
 
     opts = tile_options(options, **option_values)
     source, camera_list = point_source(points, normals, cameras=cameras, point_camera=point_camera, seed=seed)
-    count = tile_count(source.count, opts.tiles.tiles, opts.tiles.points_per_tile)
+    count = tile_count(source.count, opts.tiles.tiles, opts.tiles.points_per_tile)  # at most; fit_tiled may need fewer
     with tile_client(opts.tiles.scheduler, tasks=count, workers=opts.tiles.workers, memory_limit=opts.tiles.memory_limit) as client:
         run_on = "synchronous" if client is None else client
         t0 = time.perf_counter()
-        surface = fit_tiled(source, cameras=camera_list, options=opts, tiles=count, client=run_on, seed=seed, progress=progress)
+        surface = fit_tiled(source, cameras=camera_list, options=opts, client=run_on, seed=seed, progress=progress)
         t1 = time.perf_counter()
         extraction = {}
         mesh = extract_tiled(surface, opts, client=run_on, progress=progress, stats=extraction)
         t2 = time.perf_counter()
     meta = surface.metadata
     cons = np.array([t["constraints"] for t in meta["tiles"]])
-    stats = {"tiles": count, "points": int(source.count), "kept": int(meta["kept"]), "outliers": int(meta["outliers"]),
+    stats = {"tiles": int(meta["tile_count"]), "points": int(source.count), "kept": int(meta["kept"]), "outliers": int(meta["outliers"]),
+             "subsampled_tiles": int(meta["subsampled_tiles"]),
              "denoised_tiles": int(meta["denoised_tiles"]), "cameras": int(meta["cameras"]),
              "constraints": {"min": int(cons.min()), "median": float(np.median(cons)), "max": int(cons.max())},
              "overlap": float(meta["overlap"]), "min_overlap": float(meta["min_overlap"]),

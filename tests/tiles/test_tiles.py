@@ -8,7 +8,7 @@ import pytest
 from o3drbf.prep.sampling import mean_spacing
 from o3drbf.synthetic.shapes import Torus
 from o3drbf.tiles.extract import extract_tiled
-from o3drbf.tiles.fit import fit_tiled, tile_count
+from o3drbf.tiles.fit import fit_tiled, surface_tile_cap, tile_count
 from o3drbf.tiles.partition import Partition, kd_split, wendland, wendland_derivative
 from o3drbf.tiles.surface import TiledSurface
 
@@ -94,6 +94,39 @@ def test_tile_count_rule():
     assert tile_count(1000, tiles=3) == 3
     with pytest.raises(ValueError, match="tiles"):
         tile_count(1000, tiles="many")
+    assert tile_count(10_000_000, surface_cap=21) == 21 and tile_count(100_000, surface_cap=21) == 2
+    assert tile_count(10_000_000, tiles=400, surface_cap=21) == 400  # a count given is kept
+
+
+def test_surface_cap_counts_the_voxels_the_surface_crosses():
+    """Truth: an axis-aligned square crosses exactly (side / voxel)^2 voxels; a sphere about 1.5 A / s^2
+    (a plane of normal n crosses (|nx| + |ny| + |nz|) A / s^2 voxels; the mean of that over directions is 1.5)."""
+    rng = np.random.default_rng(0)
+    u = rng.uniform(0.0, 1.0, (200_000, 2))
+    square = np.c_[u, np.full(len(u), 0.3)]
+    cell = 0.02 / 0.75  # voxels of 0.02: 50 x 50 = 2500
+    assert surface_tile_cap(square, cell, 100) == 25
+    assert surface_tile_cap(square, cell, 2400) == 2
+    assert surface_tile_cap(square, cell, None) is None
+    v = rng.normal(size=(400_000, 3))
+    sphere = v / np.linalg.norm(v, axis=1, keepdims=True)
+    voxels = surface_tile_cap(sphere, 0.05 / 0.75, 1)  # ~80 samples per voxel area; thin slivers of voxels get none
+    assert 0.93 < voxels / (1.5 * 4 * np.pi / 0.05**2) < 1.0
+
+
+def test_auto_tiles_stop_at_what_the_mesh_shows_and_dense_tiles_are_subsampled():
+    """Auto tiles capped by the surface at the mesh's resolution; a tile denser than its constraints need
+    fits from a subsample, and every point is still counted once as kept."""
+    pts, nrm = SMALL.sample(12_000, seed=3)
+    common = dict(client="synchronous", global_count=200, surface_count_per_tile=25, outliers="none", resolution=10, points_per_tile=300)
+    s = fit_tiled(pts, nrm, **common)
+    m = s.metadata
+    uncapped = tile_count(len(pts), "auto", 300)
+    assert uncapped == 40 and 1 <= m["tile_count"] < uncapped
+    limit = 40 * 25
+    assert all(t["used"] == min(t["points"], limit) for t in m["tiles"]) and m["subsampled_tiles"] >= 1
+    assert m["kept"] == len(pts) and m["outliers"] == 0
+    assert np.abs(s(pts)).mean() < 0.01
 
 
 # -- tiled surface ---------------------------------------------------------------------
