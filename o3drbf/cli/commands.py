@@ -254,8 +254,8 @@ def _reconstruct(args) -> int:
         _untiled_if_it_fits(args, io.point_count(args.input))  # from the file header, before reading
     if args.tiles is not None and args.cameras is None:
         vertices = _mapped_input(args.input)
-        if vertices is not None:  # a binary PLY with normals: never read whole
-            check_reconstruct_files(args, vertices.take(0, min(len(vertices), 100_000))[0])
+        if vertices is not None:  # a binary PLY with normals, or a lidar file: never read whole
+            check_reconstruct_files(args, next(vertices.chunks(100_000))[1])
             return _reconstruct_tiled(args, vertices, options, out, t0)
     from o3drbf.options import check_untiled_fits
 
@@ -330,7 +330,13 @@ def _untiled_if_it_fits(args, n_points) -> None:
 
 
 def _mapped_input(path):
-    """The memory-mapped vertices of a binary PLY with normals, else None (read it into memory)."""
+    """The memory-mapped vertices of a binary PLY with normals, a LAS, LAZ or E57 file read chunk by chunk, else None (read it into memory)."""
+    from o3drbf.io.lidar import LIDAR_FORMATS
+
+    if str(path).lower().endswith(LIDAR_FORMATS):
+        from o3drbf.cameras.lidar import LidarPoints
+
+        return LidarPoints(path)
     if not str(path).lower().endswith(".ply"):
         return None
     from o3drbf.io.files import open_ply_vertices
@@ -354,7 +360,9 @@ def _reconstruct_tiled(args, data, options, out, t0) -> int:
     from o3drbf.io.files import PlyVertices
     from o3drbf.tiles.run import reconstruct_tiled
 
-    mapped = isinstance(data, PlyVertices)
+    from o3drbf.cameras.lidar import LidarPoints
+
+    mapped = "memory-mapped" if isinstance(data, PlyVertices) else "read chunk by chunk" if isinstance(data, LidarPoints) else ""
     surface, mesh, stats = reconstruct_tiled(data, options=options, seed=args.seed, progress=not args.quiet)
     io.write_mesh(out, mesh, inputs=[args.input])
     if args.save_model:
@@ -383,8 +391,9 @@ def tiled_summary(stats: dict, input_path, output_path, seconds: float, mapped: 
     input_path, output_path : path-like
     seconds : float
         Wall time of the whole command.
-    mapped : bool
-        The points were memory-mapped from the file.
+    mapped : bool or str
+        How the points were read without loading the file ("memory-mapped", "read chunk by chunk"; True:
+        memory-mapped), or False.
     report : dict, optional
         :func:`o3drbf.mesh.metrics.mesh_report` of the mesh: adds the
         watertight line of the untiled summary.
@@ -395,7 +404,7 @@ def tiled_summary(stats: dict, input_path, output_path, seconds: float, mapped: 
         f"o3drbf reconstruct --tiles: {input_path} -> {output_path}",
         f"  points           {stats['points']:,} read, {stats.get('kept', stats['points']):,} kept"
         + (f" ({stats['outliers']:,} removed as outliers)" if stats.get("outliers") else "")
-        + (" (memory-mapped, spread to per-tile files)" if mapped else ""),
+        + (f" ({'memory-mapped' if mapped is True else mapped}, spread to per-tile files)" if mapped else ""),
         *([f"  cameras          {stats['cameras']}: exterior constraints toward them and the free-space outlier test in every tile"]
           if stats.get("cameras") else []),
         *([f"  denoised         in {stats['denoised_tiles']} of {stats['tiles']} tiles (surface constraints moved onto local fits "

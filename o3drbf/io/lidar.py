@@ -17,6 +17,7 @@ reading such a file raises :class:`ImportError` whose one line names the
 from __future__ import annotations
 
 import contextlib
+import itertools
 import logging
 import os
 from dataclasses import dataclass
@@ -25,7 +26,7 @@ from typing import Iterator
 
 import numpy as np
 
-__all__ = ["LIDAR_FORMATS", "LAS_FORMATS", "CHUNK_POINTS", "E57Scan", "read_las", "las_point_count", "e57_scans",
+__all__ = ["LIDAR_FORMATS", "LAS_FORMATS", "CHUNK_POINTS", "E57Scan", "read_las", "las_chunks", "las_point_count", "e57_scans",
            "e57_chunks", "e57_point_count", "lidar_point_count"]
 
 #: Extensions of the LAS family (laspy) and of E57 (pye57).
@@ -109,8 +110,57 @@ def las_point_count(path: str | os.PathLike) -> int:
         return int(reader.header.point_count)
 
 
+def las_chunks(path: str | os.PathLike, chunk_size: int = CHUNK_POINTS) -> Iterator[tuple[np.ndarray, np.ndarray | None]]:
+    """A LAS or LAZ file's points chunk by chunk: ``(points (m, 3) float64, rgb (m, 3) uint16 or None)``.
+
+    Raises
+    ------
+    ImportError
+        laspy (or lazrs for LAZ) is missing; the message names the install.
+    FileNotFoundError, ValueError
+        Missing, empty, truncated or corrupt files, no points, with the path in
+        the one-line message (a short file before the first point is read).
+    """
+    from o3drbf.io.files import MAX_POINTS
+
+    path = Path(path)
+    with _open_las(path) as reader:
+        header = reader.header
+        n = int(header.point_count)
+        if n == 0:
+            raise ValueError(f"{path}: no points (the header announces 0)")
+        if n > MAX_POINTS:
+            raise ValueError(f"{path}: header announces {n:,} points, more than the {MAX_POINTS:,} supported; the file is corrupt")
+        if path.suffix.lower() == ".las":
+            need = int(header.offset_to_point_data) + n * int(header.point_format.size)
+            have = path.stat().st_size
+            if have < need:
+                raise ValueError(f"{path}: truncated file: the header announces {n:,} points ({need:,} bytes) "
+                                 f"but the file has {have:,} bytes")
+        rgb = {"red", "green", "blue"} <= set(header.point_format.dimension_names)
+        start = 0
+        chunks = reader.chunk_iterator(max(1, int(chunk_size)))
+        while True:
+            try:
+                with _quiet("laspy"):
+                    chunk = next(chunks, None)
+                if chunk is None:
+                    break
+                m = len(chunk)
+                if start + m > n:
+                    raise ValueError(f"more points than the {n:,} the header announces")
+                xyz = np.column_stack([np.asarray(chunk.x, float), np.asarray(chunk.y, float), np.asarray(chunk.z, float)])
+                colors = np.column_stack([chunk.red, chunk.green, chunk.blue]).astype(np.uint16) if rgb else None
+            except Exception as exc:  # lazrs and laspy raise their own errors on short or corrupt data
+                raise ValueError(f"{path}: truncated or corrupt point data after {start:,} of {n:,} points ({_first_line(exc)})") from None
+            start += m
+            yield xyz, colors
+    if start != n:
+        raise ValueError(f"{path}: truncated file: {start:,} of the {n:,} points the header announces")
+
+
 def read_las(path: str | os.PathLike, chunk_size: int = CHUNK_POINTS):
-    """Read a LAS or LAZ file chunk by chunk.
+    """Read a LAS or LAZ file chunk by chunk (:func:`las_chunks`) into one array.
 
     Parameters
     ----------
@@ -135,48 +185,23 @@ def read_las(path: str | os.PathLike, chunk_size: int = CHUNK_POINTS):
         Missing, empty, truncated or corrupt files, no points, or non-finite
         coordinates, with the path in the one-line message.
     """
-    from o3drbf.io.files import MAX_POINTS
-
     path = Path(path)
-    with _open_las(path) as reader:
-        header = reader.header
-        n = int(header.point_count)
-        if n == 0:
-            raise ValueError(f"{path}: no points (the header announces 0)")
-        if n > MAX_POINTS:
-            raise ValueError(f"{path}: header announces {n:,} points, more than the {MAX_POINTS:,} supported; the file is corrupt")
-        if path.suffix.lower() == ".las":
-            need = int(header.offset_to_point_data) + n * int(header.point_format.size)
-            have = path.stat().st_size
-            if have < need:
-                raise ValueError(f"{path}: truncated file: the header announces {n:,} points ({need:,} bytes) "
-                                 f"but the file has {have:,} bytes")
-        names = set(header.point_format.dimension_names)
-        rgb = {"red", "green", "blue"} <= names
-        points = np.empty((n, 3))
-        raw = np.empty((n, 3), dtype=np.uint16) if rgb else None
-        start = 0
-        try:
-            with _quiet("laspy"):
-                for chunk in reader.chunk_iterator(max(1, int(chunk_size))):
-                    m = len(chunk)
-                    if start + m > n:
-                        raise ValueError(f"more points than the {n:,} the header announces")
-                    points[start:start + m, 0] = chunk.x
-                    points[start:start + m, 1] = chunk.y
-                    points[start:start + m, 2] = chunk.z
-                    if rgb:
-                        raw[start:start + m] = np.column_stack([chunk.red, chunk.green, chunk.blue])
-                    start += m
-        except Exception as exc:  # lazrs and laspy raise their own errors on short or corrupt data
-            raise ValueError(f"{path}: truncated or corrupt point data after {start:,} of {n:,} points ({_first_line(exc)})") from None
-    if start != n:
-        raise ValueError(f"{path}: truncated file: {start:,} of the {n:,} points the header announces")
+    chunks = las_chunks(path, chunk_size)
+    first = next(chunks)  # the header's checks (count, size) before anything is allocated
+    n = las_point_count(path)
+    points, raw, start = np.empty((n, 3)), None, 0
+    for xyz, rgb in itertools.chain([first], chunks):
+        m = len(xyz)
+        points[start:start + m] = xyz
+        if rgb is not None:
+            raw = np.empty((n, 3), dtype=np.uint16) if raw is None else raw
+            raw[start:start + m] = rgb
+        start += m
     bad = ~np.isfinite(points).all(axis=1)
     if bad.any():
         raise ValueError(f"{path}: {int(bad.sum())} point(s) with NaN or infinite coordinates (first at index {int(np.argmax(bad))})")
     colors = None
-    if rgb and raw.any():
+    if raw is not None and raw.any():
         colors = raw / (255.0 if raw.max() <= 255 else 65535.0)
     return points, colors
 

@@ -242,11 +242,17 @@ def _fit(cset, params, options: Options, base: ImplicitSurface | None = None):
     return ImplicitSurface(params.kernel, surface.centres, surface.weights, surface.poly, Normalization.identity()), sol, robust, cset
 
 
-def _tile_points(store, norm: Normalization, cameras, settings: dict):
-    """The PointSet of one tile store (data coordinates), with its normals as the whole cloud's check left them."""
+def _tile_points(store, norm: Normalization, cameras, settings: dict, pick=None):
+    """The PointSet of one tile store (data coordinates), with its normals as the whole cloud's check left them.
+
+    ``pick``: a callable ``(box points) -> indices`` of the points to keep (all when None).
+    """
     from o3drbf.pointset import PointSet
 
     sub, nsub, pcam = read_tile_points(store)
+    if pick is not None:
+        keep = pick(sub)
+        sub, nsub, pcam = sub[keep], nsub[keep], pcam[keep]
     if not settings["normals"]:
         nsub = None
     elif settings["flip_normals"]:
@@ -293,19 +299,23 @@ def fit_tile(t: int, store=None, base: ImplicitSurface | None = None, partition:
     t0 = time.perf_counter()
     s = settings
     norm, options = s["normalization"], s["options"]
-    data, box = _tile_points(store, norm, cameras, s)
     lo, hi = partition.lo[t], partition.hi[t]
+    seed = s["seed"] + 1 + t
 
     def owned(box_points):
         return int(np.all((box_points >= lo) & (box_points < hi), axis=1).sum())
 
-    info = {"tile": t, "points": int(len(data)), "owned": owned(box)}
-    seed = s["seed"] + 1 + t
+    info = {"tile": t}
     limit = None if s["surface_count_per_tile"] is None else TILE_DEFAULTS["support_points_per_constraint"] * s["surface_count_per_tile"]
-    if limit is not None and len(data) > limit:  # denser than its constraints need: a seeded uniform subsample
-        pick = sample_indices(len(data), limit, seed)
-        data, box = data.subset(pick), box[pick]
+
+    def pick(box_points):  # denser than its constraints need: a seeded uniform subsample
+        info["points"], info["owned"] = int(len(box_points)), owned(box_points)
+        return sample_indices(len(box_points), len(box_points) if limit is None else limit, seed)
+
+    data, box = _tile_points(store, norm, cameras, s, pick)
     info["used"], used_owned = int(len(data)), owned(box)
+    if s.get("estimate_normals") and len(data) >= 10:
+        data = replace(data, normals=oriented_normals(box, base), normals_estimated=True)
     del box
     g = None
     if len(data) >= 10:
@@ -339,6 +349,34 @@ def fit_tile(t: int, store=None, base: ImplicitSurface | None = None, partition:
     return g, info
 
 
+def oriented_normals(box_points: np.ndarray, base: ImplicitSurface, k: int = 30) -> np.ndarray:
+    """Unit normals of points (box coordinates) from their ``k`` nearest neighbours, each turned outward along f0.
+
+    Outward is ``-grad f0`` (f0 is -1 outside the surface and 0 on it): a tile needs no orientation of its
+    own, and neighbouring tiles agree where f0 does.
+
+    Examples
+    --------
+    >>> class Ball:  # f = 1 - |x|^2: -grad f = 2 x points outward
+    ...     def evaluate_box(self, x, gradient=False):
+    ...         return 1 - (x * x).sum(axis=1), -2 * x
+    >>> x = np.random.default_rng(0).normal(size=(500, 3))
+    >>> x /= np.linalg.norm(x, axis=1, keepdims=True)
+    >>> n = oriented_normals(x, Ball())
+    >>> bool(np.all(np.einsum("ij,ij->i", n, x) > 0.9))
+    True
+    """
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(box_points, dtype=float)))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(int(min(k, len(box_points) - 1))))
+    n = np.asarray(pcd.normals).copy()
+    _, g = base.evaluate_box(box_points, gradient=True)
+    flip = np.einsum("ij,ij->i", n, -np.asarray(g)) < 0
+    n[flip] *= -1
+    return n
+
+
 def point_source(points, normals=None, *, cameras=None, point_camera=None, seed: int = 0):
     """The points of :func:`fit_tiled` as a chunked source, and their cameras.
 
@@ -358,6 +396,16 @@ def point_source(points, normals=None, *, cameras=None, point_camera=None, seed:
 
     if isinstance(points, ArrayPoints) and normals is None and point_camera is None:
         return points, _camera_list(cameras)
+    from o3drbf.cameras.lidar import LidarPoints
+
+    if isinstance(points, LidarPoints):  # read chunk by chunk; normals, if none and no scanners, per tile
+        if normals is not None or point_camera is not None:
+            raise ValueError("a lidar file source carries its own scans; pass normals=None and no point_camera")
+        if cameras is not None and cameras is not points.cameras:
+            raise ValueError(f"{points.path}: the scanners come from the file (E57 poses); give no cameras with a lidar file source")
+        if points.count < 10:
+            raise ValueError(f"{points.path}: {points.count} points, at least 10 needed")
+        return points, points.cameras
     if isinstance(points, PlyVertices):
         if normals is not None or point_camera is not None:
             raise ValueError("normals come from the PLY file's nx, ny, nz; pass normals=None and no point_camera with a PlyVertices source")
@@ -512,6 +560,12 @@ def fit_tiled(points, normals=None, *, cameras=None, point_camera=None, options:
     from o3drbf.pipeline import check_given_normals
 
     t0, u0 = time.perf_counter(), time.process_time()
+    estimate = not source.has_normals and camera_list is None  # normals from the points: f0's sample here, each tile's in its task
+    if estimate:
+        from o3drbf.pipeline import estimate_normals
+
+        log.info("tiles: no normals and no scanners: normals estimated on f0's sample, and in each tile oriented along f0")
+        sample = replace(sample, normals=estimate_normals(sample.points, seed=seed), normals_estimated=True)
     sample, normal_check = check_given_normals(sample, seed=seed)
     flip = normal_check is not None and normal_check.changed and "flipped" in normal_check.action.split(" + ")
     if normal_check is not None and normal_check.changed and "re-oriented" in normal_check.action:
@@ -526,12 +580,15 @@ def fit_tiled(points, normals=None, *, cameras=None, point_camera=None, options:
     del sample
     task_options = replace(opts, tiles=replace(to, scheduler=None))  # a client object does not travel to the workers
     settings = {"seed": seed, "surface_count_per_tile": to.surface_count_per_tile, "options": task_options, "normalization": norm,
-                "normals": bool(source.has_normals), "flip_normals": bool(flip), "camera_map": camera_map}
+                "normals": bool(source.has_normals), "flip_normals": bool(flip), "camera_map": camera_map,
+                "estimate_normals": bool(estimate)}
     from o3drbf.io.files import PlyVertices
 
     tile_dir = to.tile_dir
     made_dir = None
-    if tile_dir is None and isinstance(source, PlyVertices):
+    from o3drbf.cameras.lidar import LidarPoints
+
+    if tile_dir is None and isinstance(source, (PlyVertices, LidarPoints)):  # a file: its tiles' points to files too
         import tempfile
 
         tile_dir = made_dir = tempfile.mkdtemp(prefix="o3drbf-tiles-")
