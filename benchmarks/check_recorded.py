@@ -2,7 +2,8 @@
 
 Each file in ``benchmarks/recorded/`` is one run of a benchmark (``user_path.py
 --record``): its rows, the machine and load, and the markdown tables it printed.
-``docs/benchmarks.md`` quotes each table verbatim; this script fails (exit 1,
+``docs/benchmarks.md`` quotes each table verbatim, ``docs/tiles.md`` the table rows of
+each ``tiles_*.md`` (the output of ``tiles.py``); this script fails (exit 1,
 naming the file and the first line that differs) when a page no longer shows
 what its run printed, or when a row in the run failed without the page saying
 so.
@@ -28,6 +29,13 @@ def problems(recorded: Path = RECORDED, page: Path = PAGE) -> list[str]:
     runs = sorted(recorded.glob("*.json"))
     if not runs:
         return [f"{recorded}: no recorded run"]
+    tiles_page = page.parent / "tiles.md"
+    tiles_text = tiles_page.read_text() if tiles_page.exists() else ""
+    for run in sorted(recorded.glob("tiles_*.md")):  # a benchmarks/tiles.py run's output: its table rows quoted on tiles.md
+        for line in run.read_text().splitlines():
+            if line.startswith("| ") and not line.startswith("| method") and line not in tiles_text:
+                out.append(f"{tiles_page.name} does not quote {run.name}'s line: {line}")
+                break
     for run in runs:
         data = json.loads(run.read_text())
         for name in ("rows", "tables", "machine", "date"):

@@ -231,20 +231,25 @@ def test_e57_scan_with_a_non_finite_pose_is_refused_naming_the_scan(tmp_path, mo
     with pytest.raises(ValueError, match=pattern) as info:
         read_input(path)
     assert "\n" not in str(info.value)
-    assert main(["reconstruct", str(path), "-o", str(tmp_path / "out.ply"), *SMALL]) == 2
-    err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and pattern in err and "Traceback" not in err
-    assert snapshot(tmp_path) == before and not temporaries(tmp_path)
+    for extra in ([], TILED):
+        assert main(["reconstruct", str(path), "-o", str(tmp_path / "out.ply"), *SMALL, *extra]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and pattern in err and "Traceback" not in err
+        assert snapshot(tmp_path) == before and not temporaries(tmp_path)
 
 
+TILED = ["--tiles", "2", "--scheduler", "synchronous"]  # the file read chunk by chunk (cameras.lidar.LidarPoints)
+
+
+@pytest.mark.parametrize("tiled", [False, True], ids=["untiled", "tiles"])
 @pytest.mark.parametrize("case", ["las truncated", "laz truncated", "e57 truncated", "e57 zero quaternion"])
-def test_cli_bad_lidar_file_exits_2_and_writes_nothing(tmp_path, capsys, case):
+def test_cli_bad_lidar_file_exits_2_and_writes_nothing(tmp_path, capsys, case, tiled):
     pytest.importorskip("laspy")
     pytest.importorskip("pye57")
     make, pattern = LIDAR_CASES[case]
     path = make(tmp_path)
     before = snapshot(tmp_path)
-    assert main(["reconstruct", str(path), "-o", str(tmp_path / "out.ply"), *SMALL]) == 2
+    assert main(["reconstruct", str(path), "-o", str(tmp_path / "out.ply"), *SMALL, *(TILED if tiled else [])]) == 2
     err = capsys.readouterr().err.strip()
     import re
 

@@ -23,3 +23,15 @@ def test_a_page_that_drifted_from_its_run_is_caught(tmp_path):
     assert len(found) == 2 and "12.3" in found[0] and "exited 2" in found[1]
     page.write_text("| case | tool |\n| scan 27k | o3drbf | 12.3 |\n(exit 2: the scan was refused)\n")
     assert check_recorded.problems(tmp_path, page) == []
+
+
+def test_a_tiles_page_without_its_run_is_caught(tmp_path):
+    (tmp_path / "run.json").write_text(json.dumps({"date": "x", "machine": {}, "rows": [], "tables": ""}))
+    (tmp_path / "tiles_1m.md").write_text("| method | seconds |\n|---|---|\n| o3drbf tiles | 69.4 |\n")
+    page = tmp_path / "benchmarks.md"
+    page.write_text("")
+    (tmp_path / "tiles.md").write_text("| o3drbf tiles | 70.1 |\n")
+    found = check_recorded.problems(tmp_path, page)
+    assert len(found) == 1 and "69.4" in found[0]
+    (tmp_path / "tiles.md").write_text("| o3drbf tiles | 69.4 |\n")
+    assert check_recorded.problems(tmp_path, page) == []
