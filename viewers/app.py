@@ -55,7 +55,7 @@ from o3drbf.viewers.keys import LayerToggles, own_keys, pick_under_mouse, press_
 from o3drbf.viewers.inputs import ViewInput, load_view_input, model_constraints
 from o3drbf.viewers.refit import FitParams, FitResult, Refitter, pick_values
 
-__all__ = ["ViewerApp", "COLORS", "LAYERS", "SLIDERS"]
+__all__ = ["ViewerApp", "COLORS", "LAYERS", "SLIDERS", "check_png"]
 
 #: Layer colours (hex).  Surface constraints blue and exterior constraints
 #: green, as in the paper's Fig. 8.
@@ -101,6 +101,13 @@ _POLL_MS = 100
 
 # ----------------------------------------------------------------------------
 # the app
+
+
+def check_png(path, inputs) -> Path:
+    """A new ``.png`` output that overwrites none of ``inputs`` (:func:`o3drbf.io.files.check_output`)."""
+    from o3drbf.io.files import check_output
+
+    return check_output(path, inputs=inputs, formats=(".png",))
 
 
 def _headless() -> None:
@@ -469,7 +476,7 @@ class ViewerApp(LayerToggles):
         """Write the window as a PNG (default ``PREFIX.png``), atomically."""
         from o3drbf.io.files import atomic_path
 
-        out = _check_png(str(path or f"{self.save_prefix}.png"), [self.data.source])
+        out = check_png(str(path or f"{self.save_prefix}.png"), [self.data.source])
         self._render()
         with atomic_path(out) as tmp:
             self.plotter.screenshot(tmp)

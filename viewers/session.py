@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 from o3drbf.options import ViewOptions
-from o3drbf.viewers.app import SLIDERS, ViewerApp
+from o3drbf.viewers.app import SLIDERS, ViewerApp, check_png
 from o3drbf.viewers.inputs import ViewInput, load_view_input
 from o3drbf.viewers.refit import FitParams
 
@@ -58,12 +58,6 @@ def parse_script(text: str) -> list[tuple]:
     return steps
 
 
-def _check_png(path, inputs) -> Path:
-    from o3drbf.io.files import check_output
-
-    return check_output(path, inputs=inputs, formats=(".png",))
-
-
 def view(source, cameras=None, *, options: ViewOptions | None = None, screenshot=None, script: str | None = None, seed: int = 0,
          **overrides) -> int:
     """Show ``source`` in the viewer (``o3drbf view``); returns the exit status.
@@ -101,7 +95,7 @@ def view(source, cameras=None, *, options: ViewOptions | None = None, screenshot
     opts = ViewOptions.create(options, **overrides).validate()
     params = FitParams.from_options(opts, seed)
     steps = parse_script(script) if script else None
-    shot = _check_png(screenshot, [source, cameras]) if screenshot else None
+    shot = check_png(screenshot, [source, cameras]) if screenshot else None
     data = load_view_input(str(source), None if cameras is None else str(cameras), refit=opts.refit)
     if data.is_mesh:
         return _view_mesh(source, data, opts, shot, steps)
@@ -143,7 +137,7 @@ def _view_mesh(source, data: ViewInput, opts: ViewOptions, shot: Path | None, st
             raise ValueError(f"--distance-to {opts.distance_to} has no faces; give a mesh file (.ply, .obj, .stl, .off, .gltf)")
         other = read_mesh_fields(opts.distance_to)
     if shot is not None and other is not None:
-        shot = _check_png(str(shot), [source, opts.distance_to])
+        shot = check_png(str(shot), [source, opts.distance_to])
     hide = tuple(h for h in opts.hide if h in {name for _, name, _, _ in MESH_LAYERS})
     app_options = dict(color_by=opts.color_by, other=other, up=opts.up, zoom=opts.zoom, save_prefix=opts.save_prefix, hide=hide,
                        window_size=tuple(opts.window_size))

@@ -16,7 +16,7 @@ import functools
 from o3drbf.options import defaults, values
 from o3drbf.options.flags import ENTRY_FLAGS, GROUPS, flag_for, help_text, help_values
 
-__all__ = ["add_options", "options_from_args", "option_names", "value_type", "positive_int", "non_negative_int"]
+__all__ = ["add_options", "options_from_args", "option_names", "value_type", "positive_int", "non_negative_int", "validated"]
 
 
 def value_type(parse, name: str | None = None, **kw):
@@ -113,3 +113,19 @@ def options_from_args(args: argparse.Namespace, entry: str = "reconstruct"):
     if getattr(args, "all_points", False):
         flat["surface_count"] = None
     return cls.create(**flat)
+
+
+def validated(options, entry: str):
+    """``options.validate()``, its one-line refusal naming the command-line flag (``--poisson-depth``, not ``poisson_depth``)."""
+    import re
+
+    try:
+        return options.validate()
+    except ValueError as exc:
+        text = str(exc)
+        for name in sorted(option_names(entry), key=len, reverse=True):
+            flag = flag_for(entry, name)
+            dashed = (flag.flags or ("--" + name.replace("_", "-"),))[0]
+            pattern = rf"(?<![-\w]){name}(?![-\w])" if "_" in name else rf"^{name}(?![-\w])"
+            text = re.sub(pattern, dashed, text)
+        raise ValueError(text) from None

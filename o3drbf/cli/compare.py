@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from o3drbf.cli.arguments import add_options, non_negative_int, options_from_args
+from o3drbf.cli.arguments import add_options, non_negative_int, options_from_args, validated
 
 __all__ = ["add_compare_arguments", "main_compare"]
 
@@ -57,7 +57,7 @@ def main_compare(args: argparse.Namespace) -> int:
     from o3drbf.io.files import check_outputs
     from o3drbf.pointset import read_input
 
-    options = options_from_args(args, "compare").validate()
+    options = validated(options_from_args(args, "compare"), "compare")
     truth = _read_truth(args.truth) if args.truth else None
     data = read_input(args.input, cameras=args.cameras)
     points = data.points

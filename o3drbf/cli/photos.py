@@ -6,7 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
-from o3drbf.cli.arguments import add_options, non_negative_int, options_from_args
+from o3drbf.cli.arguments import add_options, non_negative_int, options_from_args, validated
 
 __all__ = ["add_photos_arguments", "main_photos"]
 
@@ -34,7 +34,7 @@ def main_photos(args: argparse.Namespace) -> int:
     from o3drbf.photo.pipeline import camera_index, photo_inputs, picture, run_photos, summary
 
     t_start = time.perf_counter()
-    options = options_from_args(args, "photos").validate()
+    options = validated(options_from_args(args, "photos"), "photos")
     out = io.check_output(args.output)
     if args.picture and Path(args.picture).suffix.lower() != ".png":
         raise ValueError(f"--picture must be a .png file, got {args.picture!r}")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from o3drbf.cli.arguments import add_options, non_negative_int, options_from_args
+from o3drbf.cli.arguments import add_options, non_negative_int, options_from_args, validated
 
 __all__ = ["add_view_arguments", "main_view"]
 
@@ -27,7 +27,7 @@ def add_view_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPars
 
 def main_view(args: argparse.Namespace) -> int:
     """Run ``o3drbf view`` (interactive, or offscreen with ``--screenshot``)."""
-    options = options_from_args(args, "view").validate()
+    options = validated(options_from_args(args, "view"), "view")
     try:
         from o3drbf.viewers.session import view
     except ImportError as exc:

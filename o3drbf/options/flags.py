@@ -36,8 +36,8 @@ class Flag:
     flags : tuple of str
         The flag strings (default ``--`` and the name with dashes).
     metavar : str or None
-    low : int
-        Smallest whole number ("int").
+    low : int or None
+        Smallest whole number ("int") the flag takes; None: any (the range is the options' ``validate``, one line).
     """
 
     help: str
@@ -46,7 +46,7 @@ class Flag:
     none: str | None = None
     flags: tuple = ()
     metavar: str | None = None
-    low: int = 1
+    low: int | None = None
 
 
 _PARAM = "kernel and parameters (lengths in the 2x2x2 box the data are normalized into)"
@@ -97,7 +97,7 @@ FLAGS = {
     "surface_radius": Flag("Poisson-disc radius (box units) instead of --surface-count", "float"),
     "exterior_ratio": Flag("exterior constraints per surface constraint", "float"),
     "exterior_offset": Flag("distance of exterior constraints from the surface, box units", "float"),
-    "sphere_count": Flag("exterior constraints on a sphere around the data", "int", low=0),
+    "sphere_count": Flag("exterior constraints on a sphere around the data", "int"),
     "denoise": Flag("move the surface constraints onto local quadric fits of all the points; auto: when the noise exceeds "
                     "{denoise_min_noise:g} constraint spacings", "auto_bool", metavar="auto|on|off"),
     # solve and mesh
@@ -122,14 +122,14 @@ FLAGS = {
                                   none="{photo_outlier_voxels:g} carving voxels"),
     "bounds": Flag("carving box 'xmin ymin zmin xmax ymax zmax', 'silhouettes' (the box of the region inside every silhouette) or 'auto' "
                    "(a Middlebury README's box if the folder has one, else silhouettes)", "box"),
-    "voxels": Flag("carving voxels along the box's longest side, 8..{max_resolution}", "int", low=8),
+    "voxels": Flag("carving voxels along the box's longest side, 8..{max_resolution}", "int"),
     "background": Flag("background colour r,g,b in [0, 1]", "rgb"),
     "threshold": Flag("foreground: largest channel difference from the background above this", "float"),
-    "min_area": Flag("silhouette specks and holes up to this many pixels are cleaned", "int", low=0),
+    "min_area": Flag("silhouette specks and holes up to this many pixels are cleaned", "int"),
     "photo_consistency": Flag("carve surface voxels whose colour spread (RMS std, colours in [0, 1]) across the cameras that see them "
                               "exceeds this; 0 keeps the visual hull", "float"),
-    "sweeps": Flag("photo-consistency sweeps", "int", low=0),
-    "min_views": Flag("cameras that must see a voxel before its colours are compared", "int", low=2),
+    "sweeps": Flag("photo-consistency sweeps", "int"),
+    "min_views": Flag("cameras that must see a voxel before its colours are compared", "int"),
     "keep_silhouettes": Flag("let photo-consistency carve voxels on the silhouettes' outline too (shrinks the silhouettes)", "store_false",
                              flags=("--carve-outline",)),
     "iou_stride": Flag("check the silhouettes at every N-th pixel", "int", metavar="N"),
@@ -138,12 +138,12 @@ FLAGS = {
     "poisson_depth": Flag("Open3D Poisson octree depth, 1..12", "int"),
     "density_quantile": Flag("Poisson (raw points): trim vertices below this density quantile (0: the closed surface; the tutorial "
                              "variant always trims at {tutorial_quantile:g})", "float"),
-    "n_samples": Flag("points drawn per mesh for the measures against --truth", "int", low=100),
+    "n_samples": Flag("points drawn per mesh for the measures against --truth", "int"),
     "up": Flag("the data's up axis, for the picture's views (the Stanford bunny: y)", "choice", choices="compare_up"),
     # view
     "view.up": Flag("the data's up axis; auto: the cameras' up, else z", "choice", choices="view_up"),
-    "view.resolution": Flag("marching-cubes cells along the longest side, 2..{max_resolution}", "int", low=2),
-    "view.surface_count": Flag("about this many surface constraints", "int", low=10),
+    "view.resolution": Flag("marching-cubes cells along the longest side, 2..{max_resolution}", "int"),
+    "view.surface_count": Flag("about this many surface constraints", "int"),
     "level": Flag("iso-level of the shown surface", "float"),
     "poisson": Flag("no Open3D Poisson panel", "store_false", flags=("--no-poisson",)),
     "window_size": Flag("pixels", "size", metavar=("W", "H")),

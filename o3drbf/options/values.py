@@ -10,8 +10,8 @@ from __future__ import annotations
 __all__ = ["whole_number", "count_or_auto", "auto_or_bool", "box_or_rule", "rgb"]
 
 
-def whole_number(text, low: int = 1, auto: bool = False):
-    """A whole number >= ``low`` (or ``"auto"`` when ``auto``).
+def whole_number(text, low: int | None = 1, auto: bool = False):
+    """A whole number >= ``low`` (None: any; or ``"auto"`` when ``auto``).
 
     Examples
     --------
@@ -25,7 +25,7 @@ def whole_number(text, low: int = 1, auto: bool = False):
         value = int(text)
     except (TypeError, ValueError):
         raise ValueError(f"expected {expected}, got {text!r}") from None
-    if value < low:
+    if low is not None and value < low:
         raise ValueError(f"expected {expected} >= {low}, got {value}")
     return value
 
