@@ -44,7 +44,7 @@ from typing import Sequence
 import numpy as np
 
 from o3drbf.mesh.arrays import mesh_arrays, raycasting_scene
-from o3drbf.options import CARVE_DEFAULTS, CarveOptions
+from o3drbf.options import CARVE_DEFAULTS, MAX_RESOLUTION, CarveOptions
 from o3drbf.progress import progress_bar
 from o3drbf.validation import as_rgb, check_number, shown
 
@@ -668,7 +668,7 @@ def carve(
         The carving's options (default :class:`~o3drbf.options.CarveOptions`, :data:`o3drbf.options.CARVE_DEFAULTS`);
         ``**overrides`` are its fields by name, over it:
     resolution : int
-        Voxels along the box's longest side, in [8, 1024].
+        Voxels along the box's longest side, from 8 to :data:`o3drbf.options.MAX_RESOLUTION`.
     background, threshold, min_area
         Segmentation (see :func:`silhouettes`), unless ``masks`` is given.
     photo_consistency : float or None
@@ -710,7 +710,7 @@ def carve(
     for i, (cam, im) in enumerate(zip(cams, imgs)):
         if cam.width is None or cam.height is None:
             raise ValueError(f"camera {i} ({cam.name or 'unnamed'}) has no image size; read the images with read_images")
-    resolution = check_number("resolution", resolution, low=8, high=1024, integer=True)
+    resolution = check_number("resolution", resolution, low=8, high=MAX_RESOLUTION, integer=True)
     if photo_consistency is not None:
         photo_consistency = check_number("photo_consistency", photo_consistency, low=0.0, high=1.0)
     sweeps = check_number("sweeps", sweeps, low=0, high=100, integer=True)
