@@ -52,7 +52,7 @@ import numpy as np
 from o3drbf.options import VIEW_LAYERS, VIEWER_DISPLAY, ViewOptions
 from o3drbf.viewers.geometry import camera_frusta, look_at, subsample, view_up, wind_like_normals
 from o3drbf.viewers.keys import LayerToggles, own_keys, pick_under_mouse, press_key
-from o3drbf.viewers.inputs import ViewInput, load_view_input, model_constraints
+from o3drbf.viewers.inputs import ViewInput, model_constraints
 from o3drbf.viewers.refit import FitParams, FitResult, Refitter, pick_values
 
 __all__ = ["ViewerApp", "COLORS", "LAYERS", "SLIDERS", "check_png"]
