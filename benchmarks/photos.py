@@ -44,7 +44,7 @@ def main(argv=None) -> int:
     if args.photo_consistency is not None:
         options["photo_consistency"] = args.photo_consistency or None
     t0 = time.perf_counter()
-    r = run_photos(folder, par[0] if par else None, resolution=args.voxels, bounds=args.bounds, **options)
+    r = run_photos(folder, par[0] if par else None, voxels=args.voxels, bounds=args.bounds, **options)
     total = time.perf_counter() - t0
     s, c, rec = r.stats, r.carve.stats, r.reconstruction.stats
     rows = [

@@ -24,7 +24,7 @@ defer_open3d_plotly()  # before anything imports open3d (see o3drbf.startup)
 _PUBLIC = {
     "o3drbf.constraints.core": ("Constraints",),
     "o3drbf.extract": ("extract_mesh",),
-    "o3drbf.options": ("DEFAULTS", "Options"),
+    "o3drbf.options": ("DEFAULTS", "Options", "PhotoOptions", "CompareOptions", "ViewOptions"),
     "o3drbf.pipeline": ("Reconstruction", "Report", "build_constraints", "check_given_normals", "choose_parameters", "colour",
                         "ensure_normals", "estimate_normals", "mesh_surface", "fit", "fit_surface", "mesh_confidence", "reconstruct",
                         "register_scans", "remove_outliers"),
@@ -59,6 +59,9 @@ __all__ = [
     "Reconstruction",
     "Report",
     "Options",
+    "PhotoOptions",
+    "CompareOptions",
+    "ViewOptions",
     "DEFAULTS",
     "PointSet",
     "read_input",

@@ -332,7 +332,6 @@ def extract_mesh(
     bounds=None,
     level: float = 0.0,
     closed: bool = True,
-    band: bool = True,
     normals: str = "exact",
     progress: bool = False,
     evaluator=None,
@@ -359,8 +358,6 @@ def extract_mesh(
     closed : bool
         Cap the surface where it leaves ``bounds`` so the mesh is closed.
         ``False`` gives an open surface cut at the box.
-    band : bool
-        Evaluate f only near the surface (default) or on the whole grid.
     normals : {"exact", "grid"}
         Vertex normals from grad f (exact) or from the grid's finite differences.
     progress : bool
@@ -402,13 +399,13 @@ def extract_mesh(
         resolution = auto_resolution(float(surface.metadata.get("mean_spacing", float("nan"))))
     resolution_ = resolution if voxel_size is None else None
     # Round cell counts to a multiple of 8 so the narrow band has coarse levels.
-    origin, h, shape = grid_for(box, resolution_, h_box, multiple=8 if band else 1)
+    origin, h, shape = grid_for(box, resolution_, h_box, multiple=8)
 
     func = mesh_evaluator(surface) if evaluator is None else evaluator
     cover = getattr(func, "cover", None)
     if cover is not None:  # one evaluation grid for the whole lattice
         cover(origin, origin + (np.array(shape) - 1) * h)
-    vals, _ = evaluate_grid(func, origin, h, shape, level=level, band=band, progress=progress)
+    vals, _ = evaluate_grid(func, origin, h, shape, level=level, band=True, progress=progress)
     vals = _keep_off_corners(vals - level)
     if closed:
         for axis in range(3):

@@ -334,7 +334,7 @@ def jupyter_backend() -> str:
 
 def plot(mesh, *, points=None, exterior=None, compare=None, title: str | None = None, show: bool = True,
          screenshot: str | os.PathLike | None = None, backend: str | None = None, window_size=None,
-         view=(1.0, -1.2, 0.9), viewup=(0.0, 0.0, 1.0)):
+         view=((1.0, -1.2, 0.9), (0.0, 0.0, 1.0))):
     """Show a mesh with PyVista: inline in Jupyter, in a window on a desktop, offscreen otherwise.
 
     Parameters
@@ -359,8 +359,9 @@ def plot(mesh, *, points=None, exterior=None, compare=None, title: str | None = 
         PyVista's Jupyter backend; default :func:`jupyter_backend` ("trame" when installed, else "static").
     window_size : (2,) int, optional
         Pixels; default 500 x 450 per panel.
-    view, viewup : 3-tuple
-        Camera direction from the scene's centre, and the data's up axis.
+    view : (direction, up) pair of 3-tuples, or a direction
+        Camera direction from the scene's centre, and the data's up axis
+        (a direction alone: up is z).
 
     Returns
     -------
@@ -380,6 +381,7 @@ def plot(mesh, *, points=None, exterior=None, compare=None, title: str | None = 
             raise ValueError(f"plot: the mesh{which} has no triangles; give a mesh (reconstruct with extract_mesh=True)")
     if screenshot is not None and Path(screenshot).suffix.lower() != ".png":
         raise ValueError(f"plot: screenshot must be a .png file, got {str(screenshot)!r}")
+    direction, viewup = view if np.ndim(view) == 2 else (view, (0.0, 0.0, 1.0))
     headless()
     import pyvista as pv
 
@@ -392,7 +394,7 @@ def plot(mesh, *, points=None, exterior=None, compare=None, title: str | None = 
         plotter.subplot(0, i)
         plotter.set_background("white")
         plotter.add_mesh(to_pyvista(m), color=MESH_COLOR, smooth_shading=True, specular=0.3)
-        plotter.view_vector(view, viewup=viewup)  # framed on the mesh, not on far-away points
+        plotter.view_vector(direction, viewup=viewup)  # framed on the mesh, not on far-away points
         if i == 0:
             for extra, color in ((points, POINT_COLOR), (exterior, EXTERIOR_COLOR)):
                 if extra is not None and len(extra):

@@ -34,28 +34,28 @@ refitted (:mod:`o3drbf.viewers.meshview`; ``--color-by FIELD``,
 ``--screenshot OUT.png`` renders the same scene offscreen (no display
 needed) and exits.
 
-PyVista is imported inside functions only: ``add_view_arguments`` runs when
-the ``o3drbf`` parser is built.
+The options (:class:`o3drbf.options.ViewOptions`) and their flags come from
+the one table of :mod:`o3drbf.options`; :mod:`o3drbf.viewers.session` runs a
+session from them (``o3drbf view``: :mod:`o3drbf.cli.view`).  PyVista is
+imported inside functions only.
 """
 
 from __future__ import annotations
 
-import argparse
 import os
-import shlex
 import sys
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from o3drbf.options import MAX_RESOLUTION, VIEWER_DISPLAY
+from o3drbf.options import VIEW_LAYERS, VIEWER_DISPLAY, ViewOptions
 from o3drbf.viewers.geometry import camera_frusta, look_at, subsample, view_up, wind_like_normals
 from o3drbf.viewers.keys import LayerToggles, own_keys, pick_under_mouse, press_key
-from o3drbf.viewers.inputs import ViewInput, load_view_input, model_constraints
+from o3drbf.viewers.inputs import ViewInput, model_constraints
 from o3drbf.viewers.refit import FitParams, FitResult, Refitter, pick_values
 
-__all__ = ["add_view_arguments", "main_view", "ViewerApp", "COLORS", "LAYERS", "SLIDERS", "parse_script"]
+__all__ = ["ViewerApp", "COLORS", "LAYERS", "SLIDERS", "check_png"]
 
 #: Layer colours (hex).  Surface constraints blue and exterior constraints
 #: green, as in the paper's Fig. 8.
@@ -81,6 +81,7 @@ LAYERS = (
     ("5", "cameras", "cameras", True),
     ("6", "mesh", "iso-surface", True),
 )
+assert tuple(name for _, name, _, _ in LAYERS) == VIEW_LAYERS, "the options' VIEW_LAYERS name these layers"
 
 #: Sliders: name -> (title, (low, high) in slider units, value format).
 #: lambda_surface moves in log10 units; its label shows 10**position.  The
@@ -99,188 +100,14 @@ _POLL_MS = 100
 
 
 # ----------------------------------------------------------------------------
-# command line
+# the app
 
 
-def add_view_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """The ``o3drbf view`` arguments (no PyVista import here)."""
-    from o3drbf.options import DEFAULTS, OUTLIER_METHODS, PAPER_VALUES, VIEWER_OVERRIDES
-
-    start = {**DEFAULTS, **VIEWER_OVERRIDES}
-
-    parser.add_argument(
-        "input",
-        help="point cloud (PLY, PCD, XYZ, ...), a file or folder with points and cameras "
-        "(o3drbf scan .json, Stanford .conf, COLMAP folder, bundle.out), or a saved model .npz",
-    )
-    parser.add_argument("--cameras", metavar="FILE", help="cameras for a plain point cloud (exterior constraints go toward them)")
-    g = parser.add_argument_group("a finished mesh (INPUT with faces: shown as it is, no refit)")
-    g.add_argument("--color-by", metavar="FIELD", default=None, help="colour the mesh by a per-vertex field: a PLY vertex property (e.g. confidence, distance) or x, y, z")
-    g.add_argument("--distance-to", metavar="OTHER", default=None, help="colour the mesh by its distance to the mesh OTHER, shown beside it coloured by its distance to the mesh (same camera, same colour range)")
-    g.add_argument("--refit", action="store_true", help="take a mesh's vertices as points and fit them (instead of showing the mesh)")
-    parser.add_argument("--screenshot", metavar="PNG", help="render offscreen to this .png and exit (no display needed)")
-    parser.add_argument("--no-poisson", action="store_true", help="no Open3D Poisson panel")
-    parser.add_argument("--poisson-depth", type=int, default=8, help="Open3D Poisson octree depth, 1..12 (default %(default)s)")
-    g = parser.add_argument_group("starting values of the sliders")
-    g.add_argument(
-        "--auto",
-        action=argparse.BooleanOptionalAction,
-        default=start["auto"],
-        help="first fit: choose delta, tau and lambda-surface from the data (default); --no-auto: the paper's "
-        f"delta {PAPER_VALUES['delta']:g}, tau {PAPER_VALUES['tau']:g}, lambda-surface {PAPER_VALUES['lambda_surface']:g}",
-    )
-    g.add_argument("--lambda-surface", type=float, default=None, help="smoothing of surface constraints (default: --auto)")
-    g.add_argument("--delta", type=float, default=None, help="multi-order basis: first-order weight (default: --auto)")
-    g.add_argument("--tau", type=float, default=None, help="multi-order basis: third-order weight (default: --auto)")
-    g.add_argument("--level", type=float, default=0.0, help="iso-level of the shown surface (default %(default)s)")
-    g.add_argument("--resolution", type=int, default=start["resolution"], help=f"marching-cubes cells along the longest side, 2..{MAX_RESOLUTION} (default %(default)s)")
-    g = parser.add_argument_group("fit")
-    g.add_argument("--surface-count", type=int, default=start["surface_count"], help="about this many surface constraints (default %(default)s)")
-    g.add_argument("--outliers", default=start["outliers"], choices=list(OUTLIER_METHODS), help="outlier handling (as o3drbf reconstruct; default %(default)s)")
-    g.add_argument("--seed", type=int, default=0, help="seed for sampling (default %(default)s)")
-    g = parser.add_argument_group("window")
-    g.add_argument("--window-size", type=int, nargs=2, default=(1600, 800), metavar=("W", "H"), help="pixels (default %(default)s)")
-    g.add_argument("--save-prefix", default="o3drbf_view", help="keys m / k write PREFIX_mesh.ply / PREFIX.png (default %(default)s)")
-    g.add_argument("--show-sphere", action="store_true", help="show the sphere constraints at start (key 4)")
-    g.add_argument("--hide", nargs="+", default=[], metavar="LAYER", choices=[name for _, name, _, _ in LAYERS], help="layers hidden at start: " + ", ".join(name for _, name, _, _ in LAYERS))
-    g.add_argument("--max-points", type=int, default=VIEWER_DISPLAY["max_points"], help="draw at most this many points per point layer (a seeded subsample; default %(default)s)")
-    g.add_argument("--zoom", type=float, default=1.0, help="start view: 1 fits the data, 0.3 also shows cameras further out (default %(default)s)")
-    g.add_argument("--up", default="auto", choices=["auto", "x", "y", "z"], help="the data's up axis; auto: the cameras' up, else z (default %(default)s)")
-    # Scripted session for tests: "set level 0.1; wait; print; quit" (see parse_script).
-    g.add_argument("--script", default=None, help=argparse.SUPPRESS)
-    return parser
-
-
-def _params_from_args(args) -> FitParams:
-    from o3drbf.validation import check_number
-
-    def opt(name, value, **kw):
-        return None if value is None else check_number(name, value, **kw)
-
-    return FitParams(
-        lambda_surface=opt("lambda_surface", args.lambda_surface, low=0.0),
-        delta=opt("delta", args.delta, low=0.0, low_open=True),
-        tau=opt("tau", args.tau, low=0.0, low_open=True),
-        auto=bool(args.auto),
-        level=check_number("level", args.level),
-        resolution=check_number("resolution", args.resolution, low=2, high=MAX_RESOLUTION, integer=True),
-        surface_count=check_number("surface_count", args.surface_count, low=10, integer=True),
-        outliers=args.outliers,
-        seed=args.seed,
-    )
-
-
-def _check_png(path: str, inputs) -> Path:
+def check_png(path, inputs) -> Path:
+    """A new ``.png`` output that overwrites none of ``inputs`` (:func:`o3drbf.io.files.check_output`)."""
     from o3drbf.io.files import check_output
 
     return check_output(path, inputs=inputs, formats=(".png",))
-
-
-def main_view(args: argparse.Namespace) -> int:
-    """Run ``o3drbf view`` (interactive, or offscreen with ``--screenshot``)."""
-    params = _params_from_args(args)
-    depth = int(args.poisson_depth)
-    if not 1 <= depth <= 12:
-        raise ValueError(f"--poisson-depth must be 1..12, got {depth}")
-    w, h = args.window_size
-    if not 0.01 <= args.zoom <= 100:
-        raise ValueError(f"--zoom must be in 0.01..100, got {args.zoom}")
-    if args.max_points < 1:
-        raise ValueError(f"--max-points must be at least 1, got {args.max_points}")
-    if w < 200 or h < 150:
-        raise ValueError(f"--window-size must be at least 200 150, got {w} {h}")
-    script = parse_script(args.script) if args.script else None
-    shot = _check_png(args.screenshot, [args.input, args.cameras]) if args.screenshot else None
-    data = load_view_input(args.input, args.cameras, refit=args.refit)
-    if data.is_mesh:
-        return _view_mesh(args, data, shot)
-    for flag, value in (("--color-by", args.color_by), ("--distance-to", args.distance_to)):
-        if value is not None:
-            raise ValueError(f"{flag} needs a mesh with faces as INPUT; {args.input} is {'fitted (--refit)' if args.refit else 'not a mesh'}")
-    options = dict(poisson=not args.no_poisson, poisson_depth=depth, window_size=(w, h), save_prefix=args.save_prefix, show_sphere=args.show_sphere, hide=tuple(args.hide), up=args.up, zoom=args.zoom, max_points=args.max_points)
-    if _screenshot_only(shot, lambda: ViewerApp.offscreen(data, params, **options), lambda app: app.fit_now()):
-        return 0
-    app = ViewerApp.interactive(data, params, script=script, **options)
-    return app.run()
-
-
-def _screenshot_only(shot: Path | None, make_offscreen, prepare=None) -> bool:
-    """With ``--screenshot``: render offscreen, write the picture, report; False when a window is wanted (and possible)."""
-    if shot is not None:
-        app = make_offscreen()
-        try:
-            if prepare is not None:
-                prepare(app)
-            app.save_screenshot(shot)
-            print(f"o3drbf view: {app.describe()}; wrote {shot}")
-        finally:
-            app.close()
-        return True
-    if sys.platform.startswith("linux") and not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
-        raise RuntimeError("no display for the interactive viewer; use --screenshot OUT.png (offscreen) or run it under xvfb-run")
-    return False
-
-
-def _view_mesh(args: argparse.Namespace, data: ViewInput, shot: Path | None) -> int:
-    """``o3drbf view MESH``: the mesh as it is (:mod:`o3drbf.viewers.meshview`)."""
-    from o3drbf.viewers.inputs import read_mesh_fields, has_faces
-    from o3drbf.viewers.meshview import MESH_LAYERS, MeshViewerApp
-
-    other = None
-    if args.distance_to is not None:
-        if not Path(args.distance_to).is_file():
-            raise FileNotFoundError(f"--distance-to: mesh not found: {args.distance_to}")
-        if not has_faces(args.distance_to):
-            raise ValueError(f"--distance-to {args.distance_to} has no faces; give a mesh file (.ply, .obj, .stl, .off, .gltf)")
-        other = read_mesh_fields(args.distance_to)
-    if shot is not None and other is not None:
-        shot = _check_png(str(shot), [args.input, args.distance_to])
-    hide = tuple(h for h in args.hide if h in {name for _, name, _, _ in MESH_LAYERS})
-    options = dict(color_by=args.color_by, other=other, up=args.up, zoom=args.zoom, save_prefix=args.save_prefix, hide=hide, window_size=tuple(args.window_size))
-    if _screenshot_only(shot, lambda: MeshViewerApp.offscreen(data, **options)):
-        return 0
-    script = parse_script(args.script) if args.script else None
-    return MeshViewerApp.interactive(data, **options).run(script)
-
-
-# ----------------------------------------------------------------------------
-# scripted sessions (tests, demos)
-
-_SCRIPT_COMMANDS = {"set": 2, "wait": 0, "print": 0, "pick": 3, "key": 1, "quit": 0}
-
-
-def parse_script(text: str) -> list[tuple]:
-    """Steps of a scripted session: ``"set level 0.1; wait; print; pick 0 0 0; quit"``.
-
-    Commands: ``set SLIDER VALUE`` (moves a slider and runs its callback;
-    VALUE in the parameter's own units), ``wait`` (until every job is done),
-    ``print`` (one line describing the mesh, on stdout), ``pick X Y Z``,
-    ``key K`` (a key press delivered through VTK's events, as from the
-    window), ``quit``.
-    """
-    steps = []
-    for part in text.split(";"):
-        words = shlex.split(part)
-        if not words:
-            continue
-        cmd, rest = words[0], words[1:]
-        if cmd not in _SCRIPT_COMMANDS:
-            raise ValueError(f"unknown script command {cmd!r}; valid: {', '.join(_SCRIPT_COMMANDS)}")
-        if len(rest) != _SCRIPT_COMMANDS[cmd]:
-            raise ValueError(f"script command {cmd!r} takes {_SCRIPT_COMMANDS[cmd]} argument(s), got {rest}")
-        if cmd == "set":
-            if rest[0] not in SLIDERS:
-                raise ValueError(f"script: unknown slider {rest[0]!r}; valid: {', '.join(SLIDERS)}")
-            steps.append((cmd, rest[0], float(rest[1])))
-        elif cmd == "pick":
-            steps.append((cmd, tuple(float(v) for v in rest)))
-        else:
-            steps.append((cmd, *rest))
-    return steps
-
-
-# ----------------------------------------------------------------------------
-# the app
 
 
 def _headless() -> None:
@@ -318,35 +145,26 @@ class ViewerApp(LayerToggles):
     plotter : pyvista.Plotter
         Laid out by :meth:`_layout`: a control column, the o3drbf panel
         and (when ``poisson``) the Poisson panel.
-    poisson : bool
-        Show Open3D Poisson in a second panel (off for a saved model: there
-        are no points).
-    poisson_depth : int
-    save_prefix : str
-        Keys m / k write ``PREFIX_mesh.ply`` / ``PREFIX.png``.
-    show_sphere : bool
-        Show the sphere constraints at start.
-    hide : sequence of str
-        Layers hidden at start (names in :data:`LAYERS`).
-    up : {"auto", "x", "y", "z"}
-        The data's up axis; "auto" takes the cameras' (else z).
-    zoom : float
-        Start view: 1 fits the data; below 1 shows more around it (the cameras).
+    options : ViewOptions, optional
+        The display: ``poisson`` (a second panel with Open3D Poisson, off
+        for a saved model: there are no points) and its ``poisson_depth``,
+        ``save_prefix``, ``show_sphere``, ``hide``, ``up``, ``zoom`` and
+        ``max_points`` (default :class:`~o3drbf.options.ViewOptions`; its
+        fit is ``params``).
     script : list of steps, optional
-        From :func:`parse_script`, run by the window timer.
-    max_points : int
-        Each point layer draws at most this many points (a seeded
-        subsample; :data:`o3drbf.options.VIEWER_DISPLAY`).
+        From :func:`o3drbf.viewers.session.parse_script`, run by the window timer.
     """
 
-    def __init__(self, data: ViewInput, params: FitParams, plotter, poisson: bool = True, poisson_depth: int = 8, save_prefix: str = "o3drbf_view", show_sphere: bool = False, hide=(), up: str = "auto", zoom: float = 1.0, script=None, max_points: int = VIEWER_DISPLAY["max_points"]):
+    def __init__(self, data: ViewInput, params: FitParams, plotter, options: ViewOptions | None = None, script=None):
+        opts = options or ViewOptions()
+        self.options = opts
         self.data = data
         self.plotter = plotter
-        self.max_points = int(max_points)
+        self.max_points = int(opts.max_points)
         subsample(1, self.max_points)  # refuses a cap below 1 before any work
-        self.poisson_enabled = bool(poisson) and not data.is_model
-        self.poisson_depth = poisson_depth
-        self.save_prefix = save_prefix
+        self.poisson_enabled = bool(opts.poisson) and not data.is_model
+        self.poisson_depth = opts.poisson_depth
+        self.save_prefix = opts.save_prefix
         self.script = list(script or [])
         self.exit_code = 0
         self.poisson_mesh = None
@@ -355,8 +173,8 @@ class ViewerApp(LayerToggles):
         self.result: FitResult | None = None
         self.messages: list[str] = []
         self.visible = {name: shown for _, name, _, shown in LAYERS}
-        self.visible["sphere"] = bool(show_sphere)
-        for name in hide:
+        self.visible["sphere"] = bool(opts.show_sphere)
+        for name in opts.hide:
             if name not in self.visible:
                 raise ValueError(f"unknown layer {name!r}; valid: {', '.join(self.visible)}")
             self.visible[name] = False
@@ -370,8 +188,8 @@ class ViewerApp(LayerToggles):
         self.refitter = Refitter(data, params, surface=data.model, constraints=constraints)
         lo, hi = data.bounds()
         self.size = float(np.linalg.norm(hi - lo)) or 1.0
-        self.up = view_up(data.cameras, up)
-        self.zoom = float(zoom)
+        self.up = view_up(data.cameras, opts.up)
+        self.zoom = float(opts.zoom)
         self._building = True  # PyVista calls each slider's callback once as it adds it: not a user action
         self._build()
         self._building = False
@@ -389,21 +207,24 @@ class ViewerApp(LayerToggles):
         return dict(shape=(1, 1 + panels), col_weights=[control] + [rest] * panels, window_size=list(window_size))
 
     @classmethod
-    def offscreen(cls, data, params, window_size=(1600, 800), **kw) -> "ViewerApp":
-        """An app on an offscreen plotter (EGL without a display)."""
+    def offscreen(cls, data, params, options: ViewOptions | None = None, script=None, **overrides) -> "ViewerApp":
+        """An app on an offscreen plotter (EGL without a display); ``overrides``: flat names over ``options``
+        (:meth:`o3drbf.options.ViewOptions.create`)."""
         _headless()
         import pyvista as pv
 
-        plotter = pv.Plotter(off_screen=True, border=False, **cls._layout(data, kw.get("poisson", True), window_size))
-        return cls(data, params, plotter, **kw)
+        opts = ViewOptions.create(options, **overrides)
+        plotter = pv.Plotter(off_screen=True, border=False, **cls._layout(data, opts.poisson, opts.window_size))
+        return cls(data, params, plotter, opts, script)
 
     @classmethod
-    def interactive(cls, data, params, window_size=(1600, 800), **kw) -> "ViewerApp":
-        """An app on an on-screen plotter (needs a display)."""
+    def interactive(cls, data, params, options: ViewOptions | None = None, script=None, **overrides) -> "ViewerApp":
+        """An app on an on-screen plotter (needs a display); ``overrides`` as :meth:`offscreen`'s."""
         import pyvista as pv
 
-        plotter = pv.Plotter(border=True, title=f"o3drbf view: {Path(data.source).name}", **cls._layout(data, kw.get("poisson", True), window_size))
-        return cls(data, params, plotter, **kw)
+        opts = ViewOptions.create(options, **overrides)
+        plotter = pv.Plotter(border=True, title=f"o3drbf view: {Path(data.source).name}", **cls._layout(data, opts.poisson, opts.window_size))
+        return cls(data, params, plotter, opts, script)
 
     #: Subplot columns: controls, o3drbf, Open3D Poisson.
     CONTROLS, MAIN, POISSON = 0, 1, 2
@@ -655,7 +476,7 @@ class ViewerApp(LayerToggles):
         """Write the window as a PNG (default ``PREFIX.png``), atomically."""
         from o3drbf.io.files import atomic_path
 
-        out = _check_png(str(path or f"{self.save_prefix}.png"), [self.data.source])
+        out = check_png(str(path or f"{self.save_prefix}.png"), [self.data.source])
         self._render()
         with atomic_path(out) as tmp:
             self.plotter.screenshot(tmp)

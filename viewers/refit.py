@@ -42,6 +42,15 @@ class FitParams:
     solver: str = DEFAULTS["solver"]
     seed: int = 0
 
+    @classmethod
+    def from_options(cls, options, seed: int = 0) -> "FitParams":
+        """The first fit of a :class:`~o3drbf.options.ViewOptions` (validated: its resolution and count are whole numbers)."""
+        fit = options.fit
+        p = fit.parameters
+        return cls(lambda_surface=p.lambda_surface, delta=p.delta, tau=p.tau, auto=bool(p.auto), level=float(options.level),
+                   resolution=int(fit.extract.resolution), surface_count=int(fit.constraints.surface_count), outliers=fit.outliers.method,
+                   solver=fit.fit.solver, seed=int(seed))
+
     def fit_key(self) -> tuple:
         """The parameters that change the implicit function (a refit)."""
         return (self.lambda_surface, self.delta, self.tau, self.auto, self.surface_count, self.outliers, self.solver, self.seed)

@@ -10,11 +10,10 @@ cameras and which camera saw each point go into one scan JSON that
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
-__all__ = ["tori_stack_mesh", "write_sample_scan"]
+__all__ = ["tori_stack_mesh", "write_sample_scan", "main"]
 
 
 def tori_stack_mesh(count: int = 3, resolution: int = 64):
@@ -48,17 +47,10 @@ def write_sample_scan(path: str | Path, views: int = 3, noise: float = 0.003, wi
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m o3drbf.viewers.sample_scan", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("out", help="output scan .json")
-    parser.add_argument("--views", type=int, default=3, help="cameras on the ring (default %(default)s, as in the paper)")
-    parser.add_argument("--noise", type=float, default=0.003, help="noise along the rays, data units (default %(default)s)")
-    args = parser.parse_args(argv)
-    try:
-        print(write_sample_scan(args.out, views=args.views, noise=args.noise))
-    except (ValueError, FileNotFoundError) as exc:
-        print(f"sample_scan: error: {' '.join(str(exc).split())}", file=sys.stderr)
-        return 2
-    return 0
+    """``python -m o3drbf.viewers.sample_scan OUT.json``: its command line is :func:`o3drbf.cli.sample_scan.main`."""
+    from o3drbf.cli.sample_scan import main as command
+
+    return command(argv)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -19,121 +19,18 @@ import warnings
 from contextlib import contextmanager
 from pathlib import Path
 
+from o3drbf.cli.arguments import add_options, non_negative_int, options_from_args
 from o3drbf.io.files import MESH_FORMATS
-from o3drbf.options import AUTO_SIZES, DEFAULTS, whole_number
 
-__all__ = ["main", "build_parser", "check_reconstruct_files", "tiled_summary"]
+__all__ = ["main", "build_parser", "check_reconstruct_files", "tiled_summary", "options_from_args", "add_option_arguments"]
 
 log = logging.getLogger("o3drbf")
 
 
-def _positive_int(text: str) -> int:
-    return whole_number(text, 1)
-
-
-def _non_negative_int(text: str) -> int:
-    return whole_number(text, 0)
-
-
 def add_option_arguments(parser: argparse.ArgumentParser) -> None:
-    """The reconstruction options, from the one table of defaults (:data:`o3drbf.options.DEFAULTS`).
-
-    :func:`options_from_args` turns the parsed values back into :class:`~o3drbf.options.Options`.
-    """
-    from o3drbf.options import DENOISE_MIN_NOISE, MAX_RESOLUTION, OUTLIER_METHODS, PAPER_VALUES, REGISTER_METHODS, SOLVER_METHODS, count_or_auto
-    from o3drbf.rbf.kernels import KERNELS
-    from o3drbf.solvers import DENSE_AUTO_MAX
-
-    a, d = AUTO_SIZES, DEFAULTS
-    g = parser.add_argument_group("kernel and parameters (lengths in the 2x2x2 box the data are normalized into)")
-    g.add_argument("--kernel", "--basis", dest="kernel", default=d["kernel"], choices=list(KERNELS),
-                   help="radial basis function (default %(default)s)")
-    g.add_argument("--auto", action=argparse.BooleanOptionalAction, default=d["auto"],
-                   help="choose delta, tau and lambda-surface from the data's spacing and noise (default); "
-                   f"--no-auto: the paper's values delta {PAPER_VALUES['delta']:g}, tau {PAPER_VALUES['tau']:g}, "
-                   f"lambda-surface {PAPER_VALUES['lambda_surface']:g}. An explicit --delta, --tau or --lambda-surface overrides only that one")
-    g.add_argument("--delta", type=float, default=d["delta"], help=f"multiorder: first-order weight (default: --auto, or {PAPER_VALUES['delta']:g})")
-    g.add_argument("--tau", type=float, default=d["tau"], help=f"multiorder: third-order weight (default: --auto, or {PAPER_VALUES['tau']:g})")
-    g.add_argument("--sigma", type=float, default=d["sigma"], help=f"gaussian: width (default {PAPER_VALUES['sigma']:g})")
-    g.add_argument("--lambda-surface", type=float, default=d["lambda_surface"],
-                   help=f"smoothing of surface constraints, >= 0 (default: --auto, or {PAPER_VALUES['lambda_surface']:g})")
-    g.add_argument("--lambda-exterior", type=float, default=d["lambda_exterior"], help="smoothing of exterior constraints, relative to phi(0) of the kernel (default %(default)s)")
-    g = parser.add_argument_group("scans and outliers")
-    g.add_argument("--register", default=d["register"], choices=list(REGISTER_METHODS),
-                   help="auto: with cameras and the scan of each point, move each scan rigidly onto the others when that makes "
-                   "them markedly more consistent (small pose errors); none: never (default %(default)s)")
-    g.add_argument("--outliers", default=d["outliers"], choices=list(OUTLIER_METHODS),
-                   help="auto: free-space consistency with cameras, an isolated-point rule without, and a robust fit; "
-                   "largest: keep the largest connected components; statistical: Open3D's filter (default %(default)s)")
-    g.add_argument("--outlier-radius", type=float, default=d["outlier_radius"],
-                   help="neighbourhood radius for --outliers largest, in data units (default: 3 mean spacings)")
-    g.add_argument("--keep-components", type=_positive_int, default=d["keep_components"], help="components kept by --outliers largest (default %(default)s)")
-    g.add_argument("--robust", action=argparse.BooleanOptionalAction, default=d["robust"],
-                   help="iteratively reweighted fit: down-weight surface constraints far from the surface (default: on)")
-    g = parser.add_argument_group("constraints")
-    g.add_argument("--surface-count", type=count_or_auto, default=d["surface_count"], metavar="auto|N",
-                   help=f"Poisson-disc subsample to about N surface constraints; auto: points / {a['points_per_constraint']}, "
-                   f"between {a['min_constraints']:,} and {a['max_constraints']:,} (default %(default)s)")
-    g.add_argument("--surface-radius", type=float, default=d["surface_radius"], help="Poisson-disc radius (box units) instead of --surface-count")
-    g.add_argument("--all-points", action="store_true", help="use every point as a surface constraint (no subsampling)")
-    g.add_argument("--exterior-ratio", type=float, default=d["exterior_ratio"], help="exterior constraints per surface constraint (default %(default)s)")
-    g.add_argument("--exterior-offset", type=float, default=d["exterior_offset"], help="distance of exterior constraints from the surface, box units (default %(default)s)")
-    g.add_argument("--sphere-count", type=int, default=d["sphere_count"], help="exterior constraints on a sphere around the data (default %(default)s)")
-    g.add_argument("--denoise", type=_auto_or_bool, default=d["denoise"], metavar="auto|on|off",
-                   help="move the surface constraints onto local quadric fits of all the points; auto: when the noise "
-                   f"exceeds {DENOISE_MIN_NOISE:g} constraint spacings (default %(default)s)")
-    g = parser.add_argument_group("solve and mesh")
-    g.add_argument("--solver", default=d["solver"], choices=list(SOLVER_METHODS),
-                   help=f"auto: dense up to {DENSE_AUTO_MAX:,} constraints (when it fits in memory), fast above (default %(default)s)")
-    g.add_argument("--resolution", type=count_or_auto, default=d["resolution"], metavar="auto|N",
-                   help=f"marching-cubes cells along the longest side, at most {MAX_RESOLUTION}; auto: {a['cells_per_spacing']:g} per "
-                   f"constraint spacing, {a['min_resolution']} to {a['max_resolution']} (default %(default)s)")
-    g.add_argument("--voxel-size", type=float, default=d["voxel_size"], help="grid spacing in data units (overrides --resolution)")
-    g = parser.add_argument_group("confidence (off by default)")
-    g.add_argument("--confidence", action="store_true", default=d["confidence"],
-                   help="per-vertex confidence in [0, 1] from the fit (GP posterior variance of the kernel and distance to the "
-                   "surface constraints), written as the float PLY vertex property 'confidence' (needs a .ply output)")
-    g.add_argument("--trim", type=float, default=d["trim"], metavar="CONFIDENCE",
-                   help="remove triangles with a vertex of confidence below CONFIDENCE (0..1): an open surface where nothing was seen "
-                   "(default: no trimming)")
-
-
-def _add_tile_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--tiles``, ``--scheduler``, ``--workers``: the tile group of :data:`o3drbf.options.DEFAULTS` on the command line
-    (its other fields are :data:`o3drbf.options.API_ONLY`)."""
-    d = DEFAULTS
-    g = parser.add_argument_group("tiles (beyond one machine; needs pip install 'o3drbf[tiles]')")
-    g.add_argument("--tiles", type=_tiles_value, default=d["tiles"], metavar="auto|N",
-                   help="tiled reconstruction over N k-d tiles blended by a partition of unity (auto: untiled when the input fits in "
-                   f"memory, said in one line; else one tile per {d['points_per_tile']:,} points)")
-    g.add_argument("--scheduler", default=d["scheduler"], metavar="ADDR",
-                   help="Dask scheduler address for --tiles, tcp://HOST:PORT (a binary PLY's tile files go to the temporary "
-                   "folder: on other machines point TMPDIR at storage they share; default: a local cluster of --workers processes; "
-                   "'synchronous': in this process)")
-    g.add_argument("--workers", type=_positive_int, default=d["workers"],
-                   help="worker processes of the local Dask cluster with --tiles, one thread each (default %(default)s)")
-
-
-def _auto_or_bool(text: str):
-    """argparse type: "auto", or on/off (yes/no, true/false) as a bool."""
-    t = str(text).strip().lower()
-    if t == "auto":
-        return "auto"
-    if t in ("on", "yes", "true", "1"):
-        return True
-    if t in ("off", "no", "false", "0"):
-        return False
-    raise argparse.ArgumentTypeError(f"expected auto, on or off, got {text!r}")
-
-
-def options_from_args(args):
-    """:class:`~o3drbf.options.Options` from arguments added by :func:`add_option_arguments`."""
-    from o3drbf.options import Options
-
-    flat = {name: getattr(args, name) for name in DEFAULTS if hasattr(args, name)}
-    if getattr(args, "all_points", False):
-        flat["surface_count"] = None
-    return Options.create(**flat)
+    """The reconstruction options (:func:`o3drbf.cli.arguments.add_options` of ``reconstruct``), and ``--all-points``."""
+    groups = add_options(parser, "reconstruct")
+    groups["constraints"].add_argument("--all-points", action="store_true", help="use every point as a surface constraint (no subsampling)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -163,13 +60,14 @@ def build_parser() -> argparse.ArgumentParser:
                    "bundle.out, .conf): exterior constraints go toward them and points in their observed free space are outliers")
     g.add_argument("--save-model", metavar="FILE.npz", help="also save the implicit function (evaluate it later with o3drbf.ImplicitSurface.load)")
     g.add_argument("--report", metavar="FILE.json", help="also write the closing summary as JSON: counts, parameters, seconds and peak memory per stage")
-    g.add_argument("--seed", type=_non_negative_int, default=0, help="seed for every random choice (default %(default)s)")
+    g.add_argument("--seed", type=non_negative_int, default=0, help="seed for every random choice (default %(default)s)")
     g.add_argument("--no-color", action="store_true", help="do not colour the mesh from the input points' colours (used when the input has colours)")
     g.add_argument("-q", "--quiet", action="store_true", help="no progress bars or summary")
     g.add_argument("-v", "--verbose", action="store_true", help="log each step")
-    _add_tile_arguments(rec)
 
-    from o3drbf.evaluation.compare import add_compare_arguments
+    from o3drbf.cli.compare import add_compare_arguments
+    from o3drbf.cli.photos import add_photos_arguments
+    from o3drbf.cli.view import add_view_arguments
 
     add_compare_arguments(
         sub.add_parser(
@@ -179,8 +77,6 @@ def build_parser() -> argparse.ArgumentParser:
             "write comparison.md/.csv/.json and comparison.png.",
         )
     )
-
-    from o3drbf.photo.pipeline import add_photos_arguments
 
     add_photos_arguments(
         sub.add_parser(
@@ -196,18 +92,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Show the input points, the constraints, the cameras and the iso-surface beside Open3D Poisson; "
         "sliders refit.  --screenshot renders offscreen without a display.",
     )
-    _add_view_arguments(view)
+    add_view_arguments(view)
     return parser
-
-
-def _add_view_arguments(parser: argparse.ArgumentParser) -> None:
-    """The viewer's arguments, without importing PyVista (``o3drbf --help`` stays fast)."""
-    try:
-        from o3drbf.viewers.app import add_view_arguments
-    except ImportError:  # viewers/ not installed: keep the CLI usable
-        parser.add_argument("input", nargs="?")
-        return
-    add_view_arguments(parser)
 
 
 def _version() -> str:
@@ -346,12 +232,6 @@ def _mapped_input(path):
     except (ValueError, FileNotFoundError):
         return None  # ascii, lists, no vertices...: read_input reads it or names the problem
     return vertices if vertices.has_normals else None
-
-
-def _tiles_value(text: str):
-    from o3drbf.tiles.run import tiles_argument
-
-    return tiles_argument(text)
 
 
 def _reconstruct_tiled(args, data, options, out, t0) -> int:
@@ -648,18 +528,16 @@ def _dispatch(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     if args.command == "reconstruct":
         return _reconstruct(args)
     if args.command == "compare":
-        from o3drbf.evaluation.compare import main_compare
+        from o3drbf.cli.compare import main_compare
 
         return main_compare(args)
     if args.command == "photos":
-        from o3drbf.photo.pipeline import main_photos
+        from o3drbf.cli.photos import main_photos
 
         return main_photos(args)
     if args.command == "view":
-        try:
-            from o3drbf.viewers.app import main_view
-        except ImportError as exc:
-            raise ImportError(f"o3drbf view needs the viewers package and PyVista ({exc}); pip install 'o3drbf[view]'") from None
+        from o3drbf.cli.view import main_view
+
         return main_view(args)
     parser.error(f"unknown command {args.command!r}")
     return 2

@@ -374,10 +374,8 @@ def exterior_constraints(
     seed: int = 0,
     visible=None,
     occluder: Any = "voxels",
-    voxel_size: float | None = None,
-    margin: float | None = None,
     point_camera=None,
-    rays: str = "voxel",
+    **rays,
 ):
     """Exterior points (f = -1) a fixed distance from the surface toward the cameras.
 
@@ -401,10 +399,12 @@ def exterior_constraints(
         Seeds the candidate thinning and the Poisson-disc order.
     visible : (N, C) bool array_like, optional
         Precomputed :func:`visibility`; otherwise computed here with
-        ``occluder``, ``voxel_size``, ``margin`` and ``point_camera``.
-    occluder, voxel_size, margin, point_camera, rays
+        ``occluder``, ``point_camera`` and ``**rays``.
+    occluder, point_camera
         As in :func:`visibility`.  When ``occluder`` is an array of points,
         the ``offset / 2`` test also uses them.
+    **rays
+        ``voxel_size``, ``margin`` and ``rays`` of :func:`visibility`.
 
     Returns
     -------
@@ -425,6 +425,10 @@ def exterior_constraints(
     """
     from o3drbf.prep.sampling import poisson_disc
 
+    unknown = sorted(set(rays) - {"voxel_size", "margin", "rays"})
+    if unknown:
+        raise ValueError(f"unknown argument(s) {', '.join(unknown)} of exterior_constraints; valid: voxel_size, margin, rays")
+    voxel_size, margin = rays.get("voxel_size"), rays.get("margin")
     pts = as_points(points)
     cams = as_cameras(cameras)
     n, c = len(pts), len(cams)
@@ -436,7 +440,7 @@ def exterior_constraints(
     ref = as_points(occluder, name="occluder", min_count=2) if is_points else pts
     tree = cKDTree(ref)
     if visible is None:
-        visible, info, _ = _visibility(pts, cams, occluder, voxel_size, margin, point_camera, True, rays, tree)
+        visible, info, _ = _visibility(pts, cams, occluder, voxel_size, margin, point_camera, True, rays.get("rays", "voxel"), tree)
     else:
         visible = np.asarray(visible)
         if visible.shape != (n, c) or visible.dtype != bool:

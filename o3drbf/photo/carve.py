@@ -37,14 +37,14 @@ import math
 import os
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
 from o3drbf.mesh.arrays import mesh_arrays, raycasting_scene
-from o3drbf.options import CARVE_DEFAULTS
+from o3drbf.options import CARVE_DEFAULTS, MAX_RESOLUTION, CarveOptions
 from o3drbf.progress import progress_bar
 from o3drbf.validation import as_rgb, check_number, shown
 
@@ -648,16 +648,10 @@ def carve(
     cameras,
     *,
     bounds=None,
-    resolution: int = DEFAULTS["resolution"],
-    background=DEFAULTS["background"],
-    threshold: float = DEFAULTS["threshold"],
-    min_area: int = DEFAULTS["min_area"],
+    options: CarveOptions | None = None,
     masks: Sequence[np.ndarray] | None = None,
-    photo_consistency: float | None = DEFAULTS["photo_consistency"],
-    sweeps: int = DEFAULTS["sweeps"],
-    min_views: int = DEFAULTS["min_views"],
-    keep_silhouettes: bool = True,
     progress: bool = False,
+    **overrides,
 ) -> CarveResult:
     """Carve a voxel volume from calibrated photographs.
 
@@ -670,12 +664,13 @@ def carve(
         from the images only by :func:`read_images`).
     bounds : (2, 3) array_like, optional
         Box to carve; default :func:`seen_bounds`.
+    options : CarveOptions, optional
+        The carving's options (default :class:`~o3drbf.options.CarveOptions`, :data:`o3drbf.options.CARVE_DEFAULTS`);
+        ``**overrides`` are its fields by name, over it:
     resolution : int
-        Voxels along the box's longest side, in [8, 1024].
+        Voxels along the box's longest side, from 8 to :data:`o3drbf.options.MAX_RESOLUTION`.
     background, threshold, min_area
         Segmentation (see :func:`silhouettes`), unless ``masks`` is given.
-    masks : sequence of (H, W) bool arrays, optional
-        Silhouettes to use instead of segmenting.
     photo_consistency : float or None
         Remove surface voxels whose colours across the cameras that see them
         have an RMS standard deviation above this (colours in [0, 1]); None
@@ -688,6 +683,8 @@ def carve(
         Never photo-carve a voxel whose centre projects within one projected
         voxel of a silhouette's edge in some image: those voxels make the
         outline, which the silhouettes already prove (default True).
+    masks : sequence of (H, W) bool arrays, optional
+        Silhouettes to use instead of segmenting.
     progress : bool
         Progress bars per stage.
 
@@ -702,12 +699,18 @@ def carve(
         parameters, or nothing left after carving.
     """
     t_all = time.perf_counter()
+    unknown = sorted(set(overrides) - {f.name for f in fields(CarveOptions)})
+    if unknown:
+        raise ValueError(f"unknown carving option(s) {', '.join(unknown)}; valid: {', '.join(f.name for f in fields(CarveOptions))}")
+    opts = replace(options or CarveOptions(), **overrides)
+    resolution, background, threshold, min_area = opts.resolution, opts.background, opts.threshold, opts.min_area
+    photo_consistency, sweeps, min_views, keep_silhouettes = opts.photo_consistency, opts.sweeps, opts.min_views, opts.keep_silhouettes
     imgs = _check_images(images, cameras)
     cams = list(cameras)
     for i, (cam, im) in enumerate(zip(cams, imgs)):
         if cam.width is None or cam.height is None:
             raise ValueError(f"camera {i} ({cam.name or 'unnamed'}) has no image size; read the images with read_images")
-    resolution = check_number("resolution", resolution, low=8, high=1024, integer=True)
+    resolution = check_number("resolution", resolution, low=8, high=MAX_RESOLUTION, integer=True)
     if photo_consistency is not None:
         photo_consistency = check_number("photo_consistency", photo_consistency, low=0.0, high=1.0)
     sweeps = check_number("sweeps", sweeps, low=0, high=100, integer=True)

@@ -22,7 +22,6 @@ Stages (each with a progress bar and a summary line):
 
 from __future__ import annotations
 
-import argparse
 import logging
 import math
 import os
@@ -33,15 +32,15 @@ from pathlib import Path
 
 import numpy as np
 
-from o3drbf.options import PHOTO_DEFAULTS
+from o3drbf.options import PHOTO_DEFAULTS, PHOTO_OUTLIER_VOXELS, PHOTO_OVERRIDES, Options, PhotoOptions
 from o3drbf.photo import carve as carving
 from o3drbf.validation import as_rgb
 
-__all__ = ["add_photos_arguments", "main_photos", "run_photos", "PhotosResult", "readme_bounds", "picture", "photo_inputs", "PHOTO_DEFAULTS"]
+__all__ = ["run_photos", "PhotosResult", "readme_bounds", "picture", "photo_inputs", "camera_index", "summary", "PHOTO_DEFAULTS",
+           "PHOTO_OVERRIDES", "PHOTO_OUTLIER_VOXELS", "PhotoOptions"]
 
 log = logging.getLogger("o3drbf")
 
-#: Reconstruction defaults for carved shells (delta 3-5 measured better than the paper's 10).
 
 
 @dataclass
@@ -131,31 +130,8 @@ def _load(images_dir, calibration):
     return images, cams2, cams
 
 
-def run_photos(
-    images_dir,
-    calibration=None,
-    *,
-    bounds="auto",
-    resolution: int = carving.DEFAULTS["resolution"],
-    background=carving.DEFAULTS["background"],
-    threshold: float = carving.DEFAULTS["threshold"],
-    min_area: int = carving.DEFAULTS["min_area"],
-    photo_consistency: float | None = carving.DEFAULTS["photo_consistency"],
-    sweeps: int = carving.DEFAULTS["sweeps"],
-    keep_silhouettes: bool = True,
-    delta: float = PHOTO_DEFAULTS["delta"],
-    tau: float = PHOTO_DEFAULTS["tau"],
-    lambda_surface: float = PHOTO_DEFAULTS["lambda_surface"],
-    exterior_ratio: float = PHOTO_DEFAULTS["exterior_ratio"],
-    surface_count: int = PHOTO_DEFAULTS["surface_count"],
-    mesh_resolution: int = PHOTO_DEFAULTS["mesh_resolution"],
-    iou_stride: int = 1,
-    seed: int = 0,
-    progress: bool = False,
-    images=None,
-    cameras=None,
-    **reconstruct_options,
-) -> PhotosResult:
+def run_photos(images_dir, calibration=None, *, options: PhotoOptions | None = None, seed: int = 0, progress: bool = False, images=None,
+               cameras=None, **overrides) -> PhotosResult:
     """Calibrated photographs to a closed, coloured mesh.
 
     Parameters
@@ -165,40 +141,49 @@ def run_photos(
         are given).
     calibration : path-like, optional
         Camera file or folder (default: found in ``images_dir``).
-    bounds : "auto", "silhouettes", or (2, 3) array_like
-        Carving box.  "auto": a box the folder's README gives (Middlebury),
-        else "silhouettes": the box of the region inside every silhouette.
-    resolution : int
-        Carving voxels along the box's longest side.
-    background, threshold, min_area, photo_consistency, sweeps, keep_silhouettes
-        See :func:`o3drbf.photo.carve.carve`.
-    delta, tau, lambda_surface, exterior_ratio, surface_count
-        Reconstruction (see :func:`o3drbf.pipeline.reconstruct`).  Carved shells
-        are dense and nearly noise-free, so the defaults smooth less
-        (lambda 1e-4) and place one exterior constraint per two surface
-        constraints (the gaps between thin parts need them: the paper's
-        0.1 lets the surface bridge the temple's columns).
-    mesh_resolution : int
-        Marching-cubes cells along the longest side.
-    iou_stride : int
-        Check the silhouettes at every ``iou_stride``-th pixel.
+    options : PhotoOptions, optional
+        The carving box (``bounds``), the carving (``carving``, a
+        :class:`~o3drbf.options.CarveOptions`), the fit of the carved shell
+        (``surface``, an :class:`~o3drbf.options.Options`:
+        :data:`o3drbf.options.DEFAULTS` with
+        :data:`o3drbf.options.PHOTO_OVERRIDES`; carved shells are dense and
+        nearly noise-free, so it smooths less and places one exterior
+        constraint per two surface constraints) and the silhouette check's
+        stride.  Default :class:`~o3drbf.options.PhotoOptions`.
+    seed : int
+        Seed for every random choice.
+    progress : bool
+        Progress bars per stage.
     images, cameras : optional
         Images and cameras already in memory, instead of reading files.
-    **reconstruct_options
-        More :func:`o3drbf.pipeline.reconstruct` arguments (``exterior_ratio``,
-        ``lambda_surface``, ``solver``...).
+    **overrides
+        Flat option names over ``options`` (:meth:`PhotoOptions.create`):
+        ``voxels`` (carving voxels along the box's longest side),
+        ``bounds``, ``threshold``, ..., and any option of
+        :func:`o3drbf.reconstruct` (``resolution``: the marching cubes',
+        ``delta``, ``surface_count``, ``solver``...).
 
     Returns
     -------
     PhotosResult
+
+    Raises
+    ------
+    ValueError
+        Bad options (checked before any file is read), unreadable inputs, too few shell voxels.
+
+    Examples
+    --------
+    >>> r = run_photos("../shared/data/middlebury_templeSparseRing", voxels=64, resolution=64)  # doctest: +SKIP
+    >>> r.stats["watertight"]  # doctest: +SKIP
+    True
     """
     from o3drbf.pipeline import reconstruct
     from o3drbf.mesh.color import color_mesh
     from o3drbf.mesh.metrics import mesh_report
 
-    from o3drbf.validation import check_number
-
-    iou_stride = check_number("iou_stride", iou_stride, low=1, integer=True)
+    opts = PhotoOptions.create(options, **overrides).validate()
+    carve_opts, bounds = opts.carving, opts.bounds
     stats: dict = {}
     t0 = time.perf_counter()
     if images is None or cameras is None:
@@ -220,42 +205,18 @@ def run_photos(
         stats["bounds_source"] = "given"
 
     t0 = time.perf_counter()
-    masks = carving.silhouettes(images, background=background, threshold=threshold, min_area=min_area)
+    masks = carving.silhouettes(images, background=carve_opts.background, threshold=carve_opts.threshold, min_area=carve_opts.min_area)
     stats["segment_seconds"] = time.perf_counter() - t0
-    cv = carving.carve(
-        images,
-        cams,
-        bounds=box,
-        resolution=resolution,
-        masks=masks,
-        photo_consistency=photo_consistency,
-        sweeps=sweeps,
-        keep_silhouettes=keep_silhouettes,
-        progress=progress,
-    )
+    cv = carving.carve(images, cams, bounds=box, options=carve_opts, masks=masks, progress=progress)
     stats["carve"] = cv.stats
     if len(cv.points) < 10:
-        raise ValueError(f"carving left {len(cv.points)} shell voxels; at least 10 needed (raise resolution or check bounds)")
+        raise ValueError(f"carving left {len(cv.points)} shell voxels; at least 10 needed (raise voxels, --voxels, or check bounds)")
 
     t0 = time.perf_counter()
-    rec = reconstruct(
-        cv.points,
-        cameras=cams,
-        point_camera=cv.best_camera(),
-        register="none",  # carved voxels share one grid: a camera that sees each, not scans that may be misregistered
-        outliers="largest",
-        outlier_radius=2.5 * cv.voxel_size,
-        delta=delta,
-        tau=tau,
-        lambda_surface=lambda_surface,
-        exterior_ratio=exterior_ratio,
-        surface_count=surface_count,
-        resolution=mesh_resolution,
-        bounds=cv.bounds,
-        seed=seed,
-        progress=progress,
-        **{"denoise": PHOTO_DEFAULTS["denoise"], **reconstruct_options},
-    )
+    surface = opts.surface
+    radius = surface.outliers.radius if surface.outliers.radius is not None else PHOTO_OUTLIER_VOXELS * cv.voxel_size
+    surface = Options.create(surface, outlier_radius=radius, bounds=cv.bounds)  # the carving's box and voxels
+    rec = reconstruct(cv.points, cameras=cams, point_camera=cv.best_camera(), options=surface, seed=seed, progress=progress)
     stats["reconstruct_seconds"] = time.perf_counter() - t0
     stats["reconstruct"] = rec.stats
 
@@ -268,8 +229,8 @@ def run_photos(
     t0 = time.perf_counter()
     box_used = cv.bounds
     inside = carving.box_masks(box_used, cams)
-    hits = carving.mesh_masks(mesh, cams, stride=iou_stride)
-    st = slice(None, None, iou_stride)
+    hits = carving.mesh_masks(mesh, cams, stride=opts.iou_stride)
+    st = slice(None, None, opts.iou_stride)
     iou = carving.mask_iou(hits, [(m & b)[st, st] for m, b in zip(masks, inside)])
     iou_raw = carving.mask_iou(hits, [m[st, st] for m in masks])
     stats["iou_seconds"] = time.perf_counter() - t0
@@ -413,69 +374,11 @@ def picture(mesh, camera, photo, path, lighting: bool = False, inputs=()) -> Pat
     return path
 
 
-# -- command line ---------------------------------------------------------------
+# -- the command's summary ---------------------------------------------------------
 
 
-def _bounds_arg(text: str):
-    if text in ("auto", "silhouettes"):
-        return text
-    parts = text.replace(",", " ").split()
-    try:
-        vals = [float(s) for s in parts]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected 'auto', 'silhouettes' or six numbers 'xmin ymin zmin xmax ymax zmax', got {text!r}") from None
-    if len(vals) != 6:
-        raise argparse.ArgumentTypeError(f"expected six numbers 'xmin ymin zmin xmax ymax zmax', got {len(vals)}")
-    return vals
-
-
-def _colour_arg(text: str):
-    parts = text.replace(",", " ").split()
-    try:
-        vals = [float(s) for s in parts]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an RGB colour 'r,g,b' in [0, 1], got {text!r}") from None
-    if len(vals) != 3 or min(vals) < 0 or max(vals) > 1:
-        raise argparse.ArgumentTypeError(f"expected an RGB colour 'r,g,b' with components in [0, 1], got {text!r}")
-    return vals
-
-
-def add_photos_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """The ``o3drbf photos`` arguments."""
-    d = carving.DEFAULTS
-    parser.add_argument("images", help="folder of the calibrated photographs")
-    parser.add_argument("--calibration", metavar="FILE", default=None,
-                        help="camera file or folder: Middlebury *_par.txt, Bundler bundle.out (with its list), COLMAP text model (default: found in the image folder)")
-    parser.add_argument("-o", "--output", required=True, help="output mesh (.ply, .obj, .off, .gltf; PLY keeps the vertex colours)")
-    g = parser.add_argument_group("carving")
-    g.add_argument("--bounds", type=_bounds_arg, default="auto",
-                   help="carving box 'xmin ymin zmin xmax ymax zmax', 'silhouettes' (the box of the region inside every silhouette) "
-                   "or 'auto' (a Middlebury README's box if the folder has one, else silhouettes; default)")
-    g.add_argument("--voxels", type=int, default=d["resolution"], help="voxels along the box's longest side (default %(default)s)")
-    g.add_argument("--background", type=_colour_arg, default=list(d["background"]), help="background colour r,g,b in [0, 1] (default black)")
-    g.add_argument("--threshold", type=float, default=d["threshold"], help="foreground: largest channel difference from the background above this (default %(default)s)")
-    g.add_argument("--min-area", type=int, default=d["min_area"], help="silhouette specks and holes up to this many pixels are cleaned (default %(default)s)")
-    g.add_argument("--photo-consistency", type=float, default=d["photo_consistency"],
-                   help="carve surface voxels whose colour spread (RMS std, colours in [0, 1]) across the cameras that see them exceeds this; 0 keeps the visual hull (default %(default)s)")
-    g.add_argument("--sweeps", type=int, default=d["sweeps"], help="photo-consistency sweeps (default %(default)s)")
-    g.add_argument("--carve-outline", action="store_true", help="let photo-consistency carve voxels on the silhouettes' outline too (shrinks the silhouettes)")
-    g = parser.add_argument_group("surface")
-    g.add_argument("--delta", type=float, default=PHOTO_DEFAULTS["delta"], help="multi-order basis delta (default %(default)s)")
-    g.add_argument("--tau", type=float, default=PHOTO_DEFAULTS["tau"], help="multi-order basis tau (default %(default)s)")
-    g.add_argument("--lambda-surface", type=float, default=PHOTO_DEFAULTS["lambda_surface"], help="smoothing of the surface constraints; carved shells are nearly noise-free (default %(default)s)")
-    g.add_argument("--exterior-ratio", type=float, default=PHOTO_DEFAULTS["exterior_ratio"], help="exterior constraints per surface constraint (default %(default)s)")
-    g.add_argument("--surface-count", type=int, default=PHOTO_DEFAULTS["surface_count"], help="surface constraints (default %(default)s)")
-    g.add_argument("--resolution", type=int, default=PHOTO_DEFAULTS["mesh_resolution"], help="marching-cubes cells along the longest side (default %(default)s)")
-    g = parser.add_argument_group("output")
-    g.add_argument("--picture", metavar="PNG", default=None, help="also write the input photo and the coloured model from the same camera, side by side")
-    g.add_argument("--picture-camera", default="0", help="camera for --picture: index or image name (default %(default)s)")
-    g.add_argument("--seed", type=int, default=0)
-    g.add_argument("-q", "--quiet", action="store_true", help="no progress bars or summary")
-    g.add_argument("-v", "--verbose", action="store_true", help="log each step")
-    return parser
-
-
-def _camera_index(spec: str, cameras) -> int:
+def camera_index(spec: str, cameras) -> int:
+    """The camera ``spec`` names: an index 0..n-1 or an image name (``o3drbf photos --picture-camera``); ValueError otherwise."""
     names = [c.name for c in cameras]
     if spec in names:
         return names.index(spec)
@@ -486,52 +389,6 @@ def _camera_index(spec: str, cameras) -> int:
     if not 0 <= i < len(cameras):
         raise ValueError(f"--picture-camera {i} is out of range; valid: 0..{len(cameras) - 1}")
     return i
-
-
-def main_photos(args: argparse.Namespace) -> int:
-    """Run ``o3drbf photos``; returns the exit status."""
-    from o3drbf.io import files as io
-
-    t_start = time.perf_counter()
-    out = io.check_output(args.output)
-    if args.picture:
-        pic = Path(args.picture)
-        if pic.suffix.lower() != ".png":
-            raise ValueError(f"--picture must be a .png file, got {args.picture!r}")
-    # the one guard of every command: no output is an input, a file an input refers to, or given twice
-    inputs = photo_inputs(args.images, args.calibration)
-    io.check_outputs([out, args.picture], inputs)
-    res = run_photos(
-        args.images,
-        args.calibration,
-        bounds=args.bounds,
-        resolution=args.voxels,
-        background=args.background,
-        threshold=args.threshold,
-        min_area=args.min_area,
-        photo_consistency=args.photo_consistency or None,
-        sweeps=args.sweeps,
-        keep_silhouettes=not args.carve_outline,
-        delta=args.delta,
-        tau=args.tau,
-        lambda_surface=args.lambda_surface,
-        exterior_ratio=args.exterior_ratio,
-        surface_count=args.surface_count,
-        mesh_resolution=args.resolution,
-        seed=args.seed,
-        progress=not args.quiet,
-    )
-    k = _camera_index(args.picture_camera, res.cameras) if args.picture else None
-    io.write_mesh(out, res.mesh, inputs=inputs)
-    t_pic = 0.0
-    if args.picture:
-        t0 = time.perf_counter()
-        picture(res.mesh, res.cameras[k], res.images[k], args.picture, inputs=inputs)
-        t_pic = time.perf_counter() - t0
-    res.stats["picture_seconds"] = t_pic
-    if not args.quiet:
-        print(summary(res, args.images, out, args.picture, time.perf_counter() - t_start))
-    return 0
 
 
 def summary(res: PhotosResult, images_dir, output, picture_path=None, seconds=None) -> str:

@@ -299,7 +299,7 @@ class Reconstruction:
             Default: "o3drbf (<triangles> triangles)".
         **options
             ``show``, ``screenshot`` (a .png also written), ``backend``,
-            ``window_size``, ``view``, ``viewup``: see :func:`o3drbf.pictures.plot`.
+            ``window_size``, ``view``: see :func:`o3drbf.pictures.plot`.
 
         Returns
         -------

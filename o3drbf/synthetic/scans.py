@@ -98,20 +98,7 @@ def camera_ring(
     return cams
 
 
-def range_scans(
-    mesh,
-    n_views: int = 3,
-    elevation: float = 20.0,
-    distance: float | None = None,
-    width: int = 200,
-    height: int = 150,
-    fov: float = 40.0,
-    noise: float = 0.0,
-    outliers: float = 0.0,
-    seed: int = 0,
-    up=(0.0, 0.0, 1.0),
-    azimuth: float = 0.0,
-):
+def range_scans(mesh, n_views: int = 3, *, noise: float = 0.0, outliers: float = 0.0, seed: int = 0, **ring):
     """Ray-cast range images of a mesh from viewpoints on a circle.
 
     One ray per pixel centre; every ray that hits the mesh gives a point.
@@ -121,9 +108,11 @@ def range_scans(
     mesh : Open3D TriangleMesh, path, or (vertices (V, 3), triangles (T, 3))
     n_views : int
         Cameras ``360 / n_views`` degrees apart (the paper: 3).
-    elevation, distance, width, height, fov, up, azimuth
-        The camera ring, as in :func:`camera_ring`; the ring is centred on
-        the mesh's bounding-box centre and sized by its half diagonal.
+    **ring
+        The camera ring: ``elevation``, ``distance``, ``width``, ``height``,
+        ``fov``, ``up``, ``azimuth`` of :func:`camera_ring` (its defaults);
+        the ring is centred on the mesh's bounding-box centre and sized by
+        its half diagonal.
     noise : float
         Standard deviation of Gaussian noise along each ray (mesh units).
     outliers : float in [0, 1)
@@ -148,7 +137,11 @@ def range_scans(
     seed = check_number("seed", seed, low=0, integer=True)
     lo, hi = v.min(axis=0), v.max(axis=0)
     center = (lo + hi) / 2
-    cams = camera_ring(center, 0.5 * float(np.linalg.norm(hi - lo)), n_views, elevation, distance, width, height, fov, up, azimuth)
+    ring_names = ("elevation", "distance", "width", "height", "fov", "up", "azimuth")
+    unknown = sorted(set(ring) - set(ring_names))
+    if unknown:
+        raise ValueError(f"unknown camera-ring argument(s) {', '.join(unknown)}; valid: {', '.join(ring_names)}")
+    cams = camera_ring(center, 0.5 * float(np.linalg.norm(hi - lo)), n_views, **ring)
     scene = raycasting_scene(v, t)
     rng = np.random.default_rng(seed)
     import open3d as o3d

@@ -1,7 +1,7 @@
 """One call for the command line: fit and mesh tile by tile on one Dask client.
 
 ``o3drbf reconstruct --tiles auto|N --scheduler ADDR --workers N`` maps onto
-:func:`reconstruct_tiled` (see :func:`tiles_argument` for ``--tiles``).
+:func:`reconstruct_tiled` (``--tiles`` takes :func:`o3drbf.options.count_or_auto`).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from o3drbf.tiles.extract import extract_tiled
 from o3drbf.tiles.fit import fit_tiled, point_source, tile_count
 from o3drbf.tiles.surface import TiledSurface
 
-__all__ = ["reconstruct_tiled", "tiles_argument", "merge_workers"]
+__all__ = ["reconstruct_tiled", "merge_workers"]
 
 
 def merge_workers(*summaries: dict) -> dict:
@@ -28,13 +28,6 @@ def merge_workers(*summaries: dict) -> dict:
             m["seconds"] += float(w["seconds"])
             m["peak_rss"] = max(m["peak_rss"], int(w["peak_rss"]))
     return dict(sorted(out.items()))
-
-
-def tiles_argument(text: str):
-    """argparse ``type=`` for ``--tiles``: "auto" or a whole number >= 1."""
-    from o3drbf.options import count_or_auto
-
-    return count_or_auto(text)
 
 
 def reconstruct_tiled(points, normals=None, *, cameras=None, point_camera=None, options=None, seed: int = 0, progress: bool = False,

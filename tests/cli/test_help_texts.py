@@ -62,16 +62,18 @@ def test_automatic_sizes_in_the_help_are_the_table():
     assert f"one tile per {TILE_DEFAULTS['points_per_tile']:,} points" in option(rec, "--tiles").help
 
 
-def test_one_resolution_limit_for_the_options_and_the_viewer():
-    pytest.importorskip("o3drbf.viewers.app")
-    from o3drbf.viewers.app import _params_from_args
+def test_one_resolution_limit_for_the_options_and_the_viewer(monkeypatch):
+    import o3drbf.solvers.base as base
+    from o3drbf.cli.arguments import options_from_args
+
+    monkeypatch.setattr(base, "available_memory", lambda: 64 * 2**30)  # the finest grid fits: only the limit is tested
 
     view = command("view")
     assert f"2..{MAX_RESOLUTION}" in option(view, "--resolution").help
     args = view.parse_args(["scan.json", "--resolution", str(MAX_RESOLUTION)])
-    assert _params_from_args(args).resolution == MAX_RESOLUTION
+    assert options_from_args(args, "view").validate().fit.extract.resolution == MAX_RESOLUTION
     with pytest.raises(ValueError, match="resolution"):
-        _params_from_args(view.parse_args(["scan.json", "--resolution", str(MAX_RESOLUTION + 1)]))
+        options_from_args(view.parse_args(["scan.json", "--resolution", str(MAX_RESOLUTION + 1)]), "view").validate()
     with pytest.raises(ValueError, match="resolution"):
         ExtractOptions(resolution=MAX_RESOLUTION + 1).validate()
 

@@ -12,6 +12,7 @@ import pytest
 
 o3d = pytest.importorskip("open3d")
 
+from o3drbf.cli.compare import add_compare_arguments, main_compare  # noqa: E402
 from o3drbf.evaluation import compare as C  # noqa: E402
 from o3drbf.cameras.model import Camera  # noqa: E402
 from o3drbf.synthetic.shapes import Sphere, Torus  # noqa: E402
@@ -280,7 +281,7 @@ def test_unknown_method_lists_valid_ones(torus_data):
 def _cli(argv):
     parser = argparse.ArgumentParser(prog="o3drbf")
     sub = parser.add_subparsers(dest="command")
-    C.add_compare_arguments(sub.add_parser("compare"))
+    add_compare_arguments(sub.add_parser("compare"))
     return parser.parse_args(argv)
 
 
@@ -294,7 +295,7 @@ def test_main_compare_end_to_end(torus_data, tmp_path, capsys):
     args = _cli(["compare", str(tmp_path / "torus.ply"), "--truth", str(tmp_path / "truth.ply"),
                  "--methods", "multiorder,poisson", "-o", str(out), "--resolution", str(RES)])
     assert args.poisson_depth == 8 and args.density_quantile == 0.0 and args.seed == 0 and args.cameras is None and args.up == "z"
-    assert C.main_compare(args) == 0
+    assert main_compare(args) == 0
     for name in ("comparison.md", "comparison.csv", "comparison.json", "comparison.png"):
         assert (out / name).stat().st_size > 0, name
     rows = json.loads((out / "comparison.json").read_text())
@@ -309,10 +310,10 @@ def test_main_compare_end_to_end(torus_data, tmp_path, capsys):
     bad.write_text("not a mesh\n")
     args.truth = str(bad)
     with pytest.raises(ValueError, match="broken.ply"):
-        C.main_compare(args)
+        main_compare(args)
     args.truth, args.methods = None, "poisson,bogus"
     with pytest.raises(ValueError, match="valid methods: multiorder, thinplate"):
-        C.main_compare(args)
+        main_compare(args)
 
 
 def test_poisson_both_ways_on_scans_with_outliers():
@@ -321,7 +322,7 @@ def test_poisson_both_ways_on_scans_with_outliers():
     from o3drbf.synthetic.scans import range_scans
 
     points, owner, cams = range_scans(_truth(), n_views=3, width=80, height=60, noise=0.002, outliers=0.02, seed=0)
-    rows, meshes = C.compare_with_meshes(points, None, cams, _truth(), "poisson,poisson-tutorial", point_camera=owner, n_samples=N_SAMPLES)
+    rows, meshes = C.compare_with_meshes(points, None, cams, _truth(), methods="poisson,poisson-tutorial", point_camera=owner, n_samples=N_SAMPLES)
     by = {r["method"]: r for r in rows}
     assert all(r["error"] is None for r in rows), rows
     raw, tutorial = by["poisson"], by["poisson-tutorial"]

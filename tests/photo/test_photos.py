@@ -14,7 +14,7 @@ from o3drbf.photo.pipeline import readme_bounds, run_photos
 
 from test_carve import BOX, colour_of, photos  # noqa: F401  (fixture)
 
-FAST = dict(resolution=32, surface_count=600, mesh_resolution=40)
+FAST = dict(voxels=32, surface_count=600, resolution=40)
 
 
 @pytest.fixture(scope="module")
@@ -172,7 +172,7 @@ def test_temple_silhouettes_match():
     folder = shared_data_or_skip() / "middlebury_templeSparseRing"
     if not folder.is_dir():
         pytest.skip(f"{folder} not present")
-    r = run_photos(folder, folder / "templeSR_par.txt", resolution=64, surface_count=2000, mesh_resolution=64, iou_stride=2)
+    r = run_photos(folder, folder / "templeSR_par.txt", voxels=64, surface_count=2000, resolution=64, iou_stride=2)
     assert r.stats["bounds_source"] == "README"
     assert r.stats["watertight"]
     assert (r.iou > 0.9).all(), r.iou.round(3)

@@ -243,14 +243,13 @@ def test_cluster_result_equals_single_process_result(long_torus, long_cluster):
 
 
 def test_command_line_helpers():
-    import argparse
+    from o3drbf.options import count_or_auto
+    from o3drbf.tiles.run import reconstruct_tiled
 
-    from o3drbf.tiles.run import reconstruct_tiled, tiles_argument
-
-    assert tiles_argument("auto") == "auto" and tiles_argument("3") == 3
+    assert count_or_auto("auto") == "auto" and count_or_auto("3") == 3
     for bad in ("0", "x"):
-        with pytest.raises(argparse.ArgumentTypeError, match="expected .auto. or a (whole )?number"):
-            tiles_argument(bad)
+        with pytest.raises(ValueError, match="expected .auto. or a (whole )?number"):
+            count_or_auto(bad)
     pts, nrm = SMALL.sample(800, seed=9)
     surf, mesh, stats = reconstruct_tiled(pts, nrm, tiles=2, scheduler="synchronous", resolution=24,
                                           surface_count_per_tile=200, global_count=100)

@@ -22,7 +22,8 @@ from o3drbf.synthetic.shapes import Torus
 
 pv = pytest.importorskip("pyvista")
 
-from o3drbf.viewers.app import COLORS, SLIDERS, ViewerApp, parse_script  # noqa: E402
+from o3drbf.viewers.app import COLORS, SLIDERS, ViewerApp  # noqa: E402
+from o3drbf.viewers.session import parse_script  # noqa: E402
 from o3drbf.viewers.geometry import camera_frusta, view_up, wind_like_normals  # noqa: E402
 from o3drbf.viewers.inputs import load_view_input, model_constraints  # noqa: E402
 from o3drbf.viewers.keys import press_key  # noqa: E402

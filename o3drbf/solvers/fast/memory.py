@@ -102,9 +102,11 @@ def grid_plan(kernel, centres, tree, eps: float, neighbours: int | None = None, 
 
 def _twolevel_plan(kernel, centres, tree, lam_count, coarse_update_nnz, options=None) -> int:
     """Bytes of a :class:`TwoLevel` on these centres with its default options (``options`` overrides)."""
-    o = {"neighbours": 64, "coarse_ratio": 8, "max_coarse": 6000, "exact_below": 3000, "dense_budget": 256 * 2**20,
-         "nested": 8, "nested_ratio": 24, "nested_eps": 1e-3}
-    o.update(options or {})
+    from dataclasses import asdict
+
+    from o3drbf.solvers.fast.precondition import TwoLevelSettings
+
+    o = {**asdict(TwoLevelSettings()), **(options or {})}  # the preconditioner's own defaults
     n = len(centres)
     total = 2 * NNZ_BYTES * n * (o["neighbours"] + 1)  # the tapered near matrix (and its copy while built)
     want = max(n // o["coarse_ratio"], 1)
@@ -123,9 +125,8 @@ def _twolevel_plan(kernel, centres, tree, lam_count, coarse_update_nnz, options=
     return int(total + g["grid"] + g["near"] + inner + krylov + _PER_CENTRE_BYTES * mc)  # (its work: below the outer's)
 
 
-def memory_plan(kernel, centres, rtol: float = 1e-6, eps: float | None = None, restart: int = 50, tree: cKDTree | None = None,
-                preconditioner: dict | None = None, evaluation: bool = True, evaluation_eps: float = DEFAULT_EPS,
-                box=None, extraction_bytes: int = 0, limit: int | None = None) -> dict:
+def memory_plan(kernel, centres, rtol: float = 1e-6, eps: float | None = None, restart: int = 50, preconditioner: dict | None = None,
+                evaluation: bool = True, box=None, extraction_bytes: int = 0, limit: int | None = None) -> dict:
     """Peak bytes of a fast fit on these centres (and of evaluating and meshing it), without building anything.
 
     It follows the solve as it runs: during FGMRES the products at the
@@ -146,13 +147,10 @@ def memory_plan(kernel, centres, rtol: float = 1e-6, eps: float | None = None, r
         :func:`product_tolerance` of it unless ``eps`` is given.
     eps : float, optional
     restart : int
-    tree : cKDTree, optional
-        Of ``centres``.
     preconditioner : dict, optional
         Options of :class:`TwoLevel`.
     evaluation : bool
-        Count the evaluator (:func:`make_evaluator`) and meshing.
-    evaluation_eps : float
+        Count the evaluator (:func:`make_evaluator`, at ``DEFAULT_EPS``) and meshing.
     box : (2, 3) array_like, optional
         The meshing lattice's box (default: the centres' box padded by 5 % of its span).
     extraction_bytes : int
@@ -175,7 +173,7 @@ def memory_plan(kernel, centres, rtol: float = 1e-6, eps: float | None = None, r
     if not grid_ok:
         need = fast_memory(n, restart, e)
         return {"total": need, "fit": need, "end_of_fit": need, "mesh": need, "parts": {}, "route": "fmm"}
-    tree = cKDTree(centres) if tree is None else tree
+    tree = cKDTree(centres)
     base = _PER_CENTRE_BYTES * n
     memo = {}
     main = grid_plan(kernel, centres, tree, e, neighbours=product_neighbours(n, limit), memo=memo)
@@ -200,8 +198,8 @@ def memory_plan(kernel, centres, rtol: float = 1e-6, eps: float | None = None, r
             _, lo, hi, _ = _core_box(centres, tree, main["radius"], out)
             pad = 0.05 * float((hi - lo).max())
             box = np.stack([lo - pad, hi + pad])
-        at_centres = grid_plan(kernel, centres, tree, evaluation_eps, near=False, outside=out, memo=memo)
-        at_box = grid_plan(kernel, centres, tree, evaluation_eps, near=False, box=np.asarray(box, dtype=float), outside=out,
+        at_centres = grid_plan(kernel, centres, tree, DEFAULT_EPS, near=False, outside=out, memo=memo)
+        at_box = grid_plan(kernel, centres, tree, DEFAULT_EPS, near=False, box=np.asarray(box, dtype=float), outside=out,
                            memo=memo)
         parts["evaluator"] = at_box["grid"] + at_box["potential"]
         end = base + products + at_centres["grid"] + at_centres["potential"] + max(work + [at_centres["work"]])

@@ -166,9 +166,11 @@ class CellList:
         self.start = np.searchsorted(key[self.order], np.arange(int(np.prod(self.dims)) + 1)).astype(np.int64)
         self.sorted = np.ascontiguousarray(pts[self.order])
 
-    def _pass(self, mode, targets, tab, dtab, dr, wsorted, counts, indptr, indices, data, out, grad):
+    def _pass(self, mode, targets, tables, wsorted, counts, csr, sums):
+        """One :func:`_near_pass`: ``tables`` (tab, dtab, dr), ``csr`` (indptr, indices, data), ``sums`` (out, grad)."""
+        tab, dtab, dr = tables
         _near_pass(mode, targets, self.sorted, self.order.astype(np.int32), self.start, self.lo, self.radius, self.dims,
-                   self.radius, tab, dtab, dr, wsorted, counts, indptr, indices, data, out, grad)
+                   self.radius, tab, dtab, dr, wsorted, counts, *csr, *sums)
 
     def matrix(self, targets, tab, dr: float) -> sp.csr_matrix:
         """CSR matrix (targets x points) of ``tab`` (sampled every ``dr``, interpolated linearly) at each
@@ -184,13 +186,13 @@ class CellList:
         m = len(targets)
         i64, f64 = np.zeros(1, np.int64), np.zeros(1)
         counts = np.zeros(m, np.int64)
-        self._pass(_COUNT, targets, tab, tab, dr, f64, counts, i64, np.zeros(1, np.int32), f64, f64, np.zeros((1, 3)))
+        self._pass(_COUNT, targets, (tab, tab, dr), f64, counts, (i64, np.zeros(1, np.int32), f64), (f64, np.zeros((1, 3))))
         indptr = np.zeros(m + 1, np.int64)
         np.cumsum(counts, out=indptr[1:])
         del counts
         indices = np.empty(indptr[-1], np.int32)
         data = np.empty(indptr[-1])
-        self._pass(_FILL, targets, tab, tab, dr, f64, i64, indptr, indices, data, f64, np.zeros((1, 3)))
+        self._pass(_FILL, targets, (tab, tab, dr), f64, i64, (indptr, indices, data), (f64, np.zeros((1, 3))))
         return sp.csr_matrix((data, indices, indptr), shape=(m, self.n))
 
     def add_sum(self, targets, w, tab, dtab, dr: float, out, grad=None) -> None:
@@ -209,8 +211,8 @@ class CellList:
         """
         i64, f64 = np.zeros(1, np.int64), np.zeros(1)
         mode = _SUM if grad is None else _SUM_GRAD
-        self._pass(mode, targets, tab, dtab, dr, np.ascontiguousarray(w[self.order], dtype=float), i64, i64,
-                   np.zeros(1, np.int32), f64, out, np.zeros((1, 3)) if grad is None else grad)
+        self._pass(mode, targets, (tab, dtab, dr), np.ascontiguousarray(w[self.order], dtype=float), i64,
+                   (i64, np.zeros(1, np.int32), f64), (out, np.zeros((1, 3)) if grad is None else grad))
 
 
 def default_neighbours(n: int) -> int:

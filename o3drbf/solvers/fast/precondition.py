@@ -4,6 +4,7 @@ tapered near-field local step."""
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, fields, replace
 import time
 
 import numpy as np
@@ -16,7 +17,7 @@ from o3drbf.solvers.fast.fmm import FastSum
 from o3drbf.solvers.fast.grid import GridSum, fast_operator
 from o3drbf.solvers.fast.neighbours import sparse_matrix
 
-__all__ = ["TwoLevel"]
+__all__ = ["TwoLevel", "TwoLevelSettings"]
 
 
 def _uniform_subset(points: np.ndarray, count: int) -> np.ndarray:
@@ -54,6 +55,25 @@ def _subset_operator(fast, subset, eps):
     return type(fast)(fast.kernel, cen)
 
 
+@dataclass(frozen=True)
+class TwoLevelSettings:
+    """The settings of :class:`TwoLevel` (each described there)."""
+
+    neighbours: int = 64
+    coarse_ratio: int = 8
+    max_coarse: int = 6000
+    inner: int = 10
+    eps: float = 1e-2
+    dense_budget: int = 256 * 2**20
+    select: str = "uniform"
+    exact_below: int = 3000
+    damping: float = 2.0
+    nested: int = 8
+    nested_eps: float = 1e-3
+    nested_rtol: float = 0.0
+    nested_ratio: float = 24
+
+
 class TwoLevel:
     """Two-level multiplicative preconditioner for ``Phi + diag(lam)``.
 
@@ -62,6 +82,9 @@ class TwoLevel:
     fast : FastSum
         The operator (its centres and kernel).
     lam : (N,) array
+    settings : TwoLevelSettings, optional
+        The settings below (default :class:`TwoLevelSettings`); ``**overrides``
+        are its fields by name, over it.
     neighbours : int
         k of the tapered near-field matrix.
     coarse_ratio, max_coarse : int
@@ -96,9 +119,14 @@ class TwoLevel:
         default); below it the coarse level is capped.
     """
 
-    def __init__(self, fast: FastSum, lam, neighbours=64, coarse_ratio=8, max_coarse=6000, inner=10,
-                 eps=1e-2, dense_budget=256 * 2**20, select="uniform", exact_below=3000, damping=2.0,
-                 nested=8, nested_eps=1e-3, nested_rtol=0.0, nested_ratio=24):
+    def __init__(self, fast: FastSum, lam, settings: TwoLevelSettings | None = None, **overrides):
+        unknown = sorted(set(overrides) - {f.name for f in fields(TwoLevelSettings)})
+        if unknown:
+            raise ValueError(f"unknown preconditioner setting(s) {', '.join(unknown)}; valid: {', '.join(f.name for f in fields(TwoLevelSettings))}")
+        st = replace(settings or TwoLevelSettings(), **overrides)
+        neighbours, coarse_ratio, max_coarse, inner, eps = st.neighbours, st.coarse_ratio, st.max_coarse, st.inner, st.eps
+        dense_budget, select, exact_below, damping = st.dense_budget, st.select, st.exact_below, st.damping
+        nested, nested_eps, nested_rtol, nested_ratio = st.nested, st.nested_eps, st.nested_rtol, st.nested_ratio
         kernel, x = fast.kernel, fast.centres
         n = len(x)
         self.fast, self.lam, self.inner, self.eps = fast, np.asarray(lam, float), int(inner), eps
@@ -132,11 +160,7 @@ class TwoLevel:
             # The coarse system is too big for Cholesky: solve it loosely by a
             # few FGMRES steps preconditioned by the same scheme (recursively).
             sub = _subset_operator(fast, self.coarse, nested_eps)
-            self.inner_level = TwoLevel(sub, self.lam[self.coarse], neighbours=neighbours,
-                                        coarse_ratio=coarse_ratio, max_coarse=max_coarse, inner=inner, eps=eps,
-                                        dense_budget=dense_budget, select=select, exact_below=exact_below,
-                                        damping=damping, nested=nested, nested_eps=nested_eps,
-                                        nested_rtol=nested_rtol, nested_ratio=nested_ratio)
+            self.inner_level = TwoLevel(sub, self.lam[self.coarse], st)
             self._sub, self._sub_lam, self._sub_eps = sub, self.lam[self.coarse], nested_eps
             self._sub_rtol = float(nested_rtol)
         else:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
@@ -18,26 +19,25 @@ from o3drbf.solvers.fast.memory import check_memory
 from o3drbf.solvers.fast.precondition import TwoLevel
 from o3drbf.solvers.fast.tolerance import RELAX_CAP, clip_eps, product_tolerance
 
-__all__ = ["solve"]
+__all__ = ["solve", "SolveSettings"]
 
 
-def solve(
-    kernel: Kernel,
-    centres,
-    y,
-    lam,
-    rtol: float = 1e-6,
-    max_iterations: int = 200,
-    progress: bool = False,
-    eps: float | None = None,
-    restart: int = 50,
-    memory_limit: int | None = None,
-    preconditioner: dict | None = None,
-    relax: bool = True,
-    operator: FastSum | None = None,
-    backend: str = "auto",
-    x0=None,
-) -> Solution:
+@dataclass(frozen=True)
+class SolveSettings:
+    """How :func:`solve` solves: accuracy, iterations, memory, the preconditioner and the product (fields: see :func:`solve`)."""
+
+    rtol: float = 1e-6
+    max_iterations: int = 200
+    eps: float | None = None
+    restart: int = 50
+    memory_limit: int | None = None
+    preconditioner: dict | None = None
+    relax: bool = True
+    backend: str = "auto"
+
+
+def solve(kernel: Kernel, centres, y, lam, settings: SolveSettings | None = None, *, progress: bool = False, operator: FastSum | None = None,
+          x0=None, **overrides) -> Solution:
     """Solve ``[Phi + diag(lam), Q; Q^T, 0] [w; p] = [y; 0]`` with fast products.
 
     Parameters
@@ -45,6 +45,9 @@ def solve(
     kernel : MultiOrder or Gaussian (ThinPlate is refused: use method='dense')
     centres : (N, 3) array
     y, lam : (N,) arrays
+    settings : SolveSettings, optional
+        The fields below (default :class:`SolveSettings`); ``**overrides``
+        are its fields by name, over it.
     rtol : float
         Relative residual ``||K x - b|| / ||b||`` to reach.
     max_iterations : int
@@ -83,6 +86,12 @@ def solve(
         When ``rtol`` is not reached; the message gives the residual reached.
     """
     t0 = time.perf_counter()
+    unknown = sorted(set(overrides) - {f.name for f in fields(SolveSettings)})
+    if unknown:
+        raise ValueError(f"unknown setting(s) {', '.join(unknown)} of the fast solve; valid: {', '.join(f.name for f in fields(SolveSettings))}")
+    st = replace(settings or SolveSettings(), **overrides)
+    rtol, max_iterations, eps, restart, memory_limit = st.rtol, st.max_iterations, st.eps, st.restart, st.memory_limit
+    preconditioner, relax, backend = st.preconditioner, st.relax, st.backend
     if not isinstance(kernel, (MultiOrder, Gaussian)):
         raise ValueError(
             f"the fast solver supports the multiorder and gaussian bases, not {kernel.name}; "

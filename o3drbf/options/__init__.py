@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields, replace
 
 from o3drbf.extract import AUTO_RESOLUTION, auto_resolution
+from o3drbf.options.values import auto_or_bool, box_or_rule, count_or_auto, rgb, whole_number
 from o3drbf.validation import check_choice, check_number
 
 __all__ = [
@@ -36,9 +37,29 @@ __all__ = [
     "PARAMETER_RANGES",
     "check_parameter_range",
     "whole_number",
+    "auto_or_bool",
+    "box_or_rule",
+    "rgb",
     "CARVE_DEFAULTS",
     "TILE_DEFAULTS",
     "PHOTO_DEFAULTS",
+    "PHOTO_OVERRIDES",
+    "PHOTO_OUTLIER_VOXELS",
+    "COMPARE_DEFAULTS",
+    "COMPARE_OVERRIDES",
+    "COMPARE_PEERS",
+    "COMPARE_TUTORIAL",
+    "VIEW_DEFAULTS",
+    "VIEW_UP",
+    "VIEW_LAYERS",
+    "ENTRY_POINTS",
+    "defaults",
+    "PhotoOptions",
+    "CarveOptions",
+    "CompareOptions",
+    "ViewOptions",
+    "COMPARE_UP",
+    "compare_methods",
     "SOLVER_METHODS",
     "Options",
     "RegistrationOptions",
@@ -225,30 +246,6 @@ def check_untiled_fits(n_points: int | None, available: int | None = None) -> No
         raise ValueError(f"{int(n_points):,} points need about {need / 2**30:.1f} GiB without tiles but {available / 2**30:.1f} GiB "
                          "are available; pass --tiles auto (tiled reconstruction, points read in chunks)")
 
-def whole_number(text: str, low: int = 1, auto: bool = False):
-    """Argument type: a whole number >= ``low`` (or ``"auto"`` when ``auto``).
-
-    Raises ``argparse.ArgumentTypeError`` naming what was expected.
-    """
-    import argparse
-
-    if auto and str(text).strip().lower() == "auto":
-        return "auto"
-    expected = "'auto' or a whole number" if auto else "a whole number"
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}") from None
-    if value < low:
-        raise argparse.ArgumentTypeError(f"expected {expected} >= {low}, got {value}")
-    return value
-
-
-def count_or_auto(text: str):
-    """Argument type: ``"auto"`` or a whole number >= 1 (``--surface-count``, ``--resolution``, ``--tiles``)."""
-    return whole_number(text, 1, auto=True)
-
-
 #: The viewer's starting values where an interactive refit needs a lighter
 #: problem than a final reconstruction (everything else: :data:`DEFAULTS`).
 VIEWER_OVERRIDES = {"resolution": 64, "surface_count": 1500}
@@ -258,7 +255,7 @@ VIEWER_OVERRIDES = {"resolution": 64, "surface_count": 1500}
 #: points light and small.
 VIEWER_DISPLAY = {"max_points": 50_000, "point_size": 1.0, "point_color": "#a9a9a9"}
 
-#: Space carving from photographs (:mod:`o3drbf.photo.carve`).
+#: Space carving from photographs (:mod:`o3drbf.photo.carve`, :class:`CarveOptions`).
 CARVE_DEFAULTS = {
     "resolution": 128,
     "background": (0.0, 0.0, 0.0),
@@ -267,14 +264,73 @@ CARVE_DEFAULTS = {
     "photo_consistency": 0.12,
     "sweeps": 3,
     "min_views": 2,
+    "keep_silhouettes": True,
 }
+
+#: ``o3drbf photos``' own options (:class:`PhotoOptions`): the carving box
+#: ("auto": a Middlebury README's, else the silhouettes') and the stride of
+#: the silhouette check; the carving's are :data:`CARVE_DEFAULTS`.
+PHOTO_DEFAULTS = {"bounds": "auto", "iou_stride": 1}
 
 #: ``o3drbf photos``: the fit of a carved shell (dense and nearly noise-free,
 #: so fixed parameters; overrides of :data:`DEFAULTS`).  No denoising: the
 #: voxel lattice reads as noise (h / sqrt(12)) and moving the constraints
 #: off it loses the silhouettes (docs/data/design-measurements.md, "Photos").
-PHOTO_DEFAULTS = {"delta": 4.0, "tau": 0.01, "lambda_surface": 1e-4, "exterior_ratio": 0.5, "surface_count": 3000, "mesh_resolution": 128,
-                  "denoise": False}
+#: Carved voxels share one grid (no scans to register) and stray voxels
+#: are whole pieces (the largest component is kept).
+PHOTO_OVERRIDES = {"delta": 4.0, "tau": 0.01, "lambda_surface": 1e-4, "exterior_ratio": 0.5, "surface_count": 3000, "resolution": 128,
+                   "denoise": False, "register": "none", "outliers": "largest"}
+
+#: ``outlier_radius`` None in ``o3drbf photos``: this many carving voxels (stray voxels are pieces of their own).
+PHOTO_OUTLIER_VOXELS = 2.5
+
+#: Open3D's reconstructions ``o3drbf compare`` runs beside o3drbf's kernels.
+COMPARE_PEERS = ("poisson", "poisson-tutorial", "bpa", "alpha")
+
+#: How ``o3drbf compare``'s ``poisson-tutorial`` runs Poisson: Open3D's statistical outlier
+#: removal (neighbours, standard deviations), then density trimming at this quantile.
+COMPARE_TUTORIAL = {"nb_neighbors": 20, "std_ratio": 2.0, "density_quantile": 0.05}
+
+#: ``o3drbf compare``'s own options (:class:`CompareOptions`; methods None: all).
+COMPARE_DEFAULTS = {"methods": None, "poisson_depth": 8, "density_quantile": 0.0, "n_samples": 100_000, "up": "z"}
+
+#: ``o3drbf compare``: the o3drbf rows' overrides of :data:`DEFAULTS` (the paper's constraint count on every input).
+COMPARE_OVERRIDES = {"surface_count": 3000}
+
+#: The viewer's layers and up axes.
+VIEW_LAYERS = ("points", "surface", "exterior", "sphere", "cameras", "mesh")
+VIEW_UP = ("auto", "x", "y", "z")
+
+#: The viewer's own options (:class:`ViewOptions`); its first fit is
+#: :data:`DEFAULTS` with :data:`VIEWER_OVERRIDES`.
+VIEW_DEFAULTS = {"level": 0.0, "poisson": True, "poisson_depth": 8, "window_size": (1600, 800), "save_prefix": "o3drbf_view",
+                 "show_sphere": False, "hide": (), "max_points": VIEWER_DISPLAY["max_points"], "zoom": 1.0, "up": "auto",
+                 "color_by": None, "distance_to": None, "refit": False}
+
+#: Entry point -> (its own defaults, its overrides of :data:`DEFAULTS`): the one table, by entry point.
+ENTRY_POINTS = {
+    "reconstruct": ({}, {}),
+    "photos": (PHOTO_DEFAULTS, PHOTO_OVERRIDES),
+    "compare": (COMPARE_DEFAULTS, COMPARE_OVERRIDES),
+    "view": (VIEW_DEFAULTS, VIEWER_OVERRIDES),
+}
+
+
+def defaults(entry: str = "reconstruct") -> dict:
+    """Every flat option of an entry point (a key of :data:`ENTRY_POINTS`) with its default, read from the tables now.
+
+    Examples
+    --------
+    >>> defaults("photos")["resolution"], defaults("photos")["voxels"], defaults()["resolution"]
+    (128, 128, 'auto')
+    """
+    check_choice("entry", entry, tuple(ENTRY_POINTS))
+    own, overrides = ENTRY_POINTS[entry]
+    out = {**DEFAULTS, **overrides, **own}
+    if entry == "photos":
+        out.update({("voxels" if k == "resolution" else k): v for k, v in CARVE_DEFAULTS.items()})
+    return out
+
 
 #: Tiled reconstruction (:func:`o3drbf.tiles.fit.fit_tiled`): the tile sizes of
 #: :data:`DEFAULTS` (:class:`TileOptions`), the root box's padding (a
@@ -752,3 +808,6 @@ class Options:
     def as_dict(self) -> dict:
         """Nested plain dict (for reports)."""
         return asdict(self)
+
+
+from o3drbf.options.entry import COMPARE_UP, CarveOptions, CompareOptions, PhotoOptions, ViewOptions, compare_methods  # noqa: E402 - they build on Options
