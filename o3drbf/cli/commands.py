@@ -225,6 +225,23 @@ def main(argv: list[str] | None = None) -> int:
     (Ctrl-C); 128 + N on signal N (SIGTERM: 143).  Outputs are atomic: on
     any failure or interruption no partial file is left and an existing
     output is unchanged.
+
+    Examples
+    --------
+    >>> import contextlib, io, pathlib, tempfile
+    >>> from o3drbf.cli.commands import main
+    >>> from o3drbf.io.files import write_points
+    >>> from o3drbf.synthetic.shapes import Sphere
+    >>> folder = pathlib.Path(tempfile.mkdtemp())
+    >>> _ = write_points(folder / 'sphere.ply', *Sphere(1.0).sample(600, noise=0.002, seed=0))
+    >>> main(['reconstruct', str(folder / 'sphere.ply'), '-o', str(folder / 'mesh.ply'), '--resolution', '20', '-q'])
+    0
+    >>> err = io.StringIO()
+    >>> with contextlib.redirect_stderr(err):
+    ...     main(['reconstruct', str(folder / 'sphere.ply'), '-o', str(folder / 'mesh.ply'), '--resolutoin', '20'])
+    2
+    >>> print(err.getvalue().strip())
+    o3drbf: error: unknown option --resolutoin; did you mean --resolution?
     """
     from o3drbf.io.files import signal_cleanup
 

@@ -539,6 +539,15 @@ def compare(points, normals=None, cameras=None, truth=None, methods=METHODS, see
     ValueError
         Unknown method names (the message lists the valid ones), bad points,
         normals or parameters, a truth mesh without triangles.
+
+    Examples
+    --------
+    >>> from o3drbf.evaluation.compare import compare
+    >>> from o3drbf.synthetic.shapes import Sphere
+    >>> points, normals = Sphere(1.0).sample(600, noise=0.002, seed=0)
+    >>> rows = compare(points, normals, methods='multiorder,poisson', resolution=20, poisson_depth=5, surface_count=200)
+    >>> [(row['method'], row['watertight']) for row in rows]
+    [('multiorder', True), ('poisson', True)]
     """
     rows, _ = compare_with_meshes(points, normals, cameras, truth, methods, seed, resolution, poisson_depth, density_quantile, **kw)
     return rows

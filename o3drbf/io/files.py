@@ -704,6 +704,16 @@ def read_points(path: str | os.PathLike):
     FileNotFoundError, ValueError
         Missing, unreadable, truncated or empty files, mixed column counts
         and non-finite coordinates, with the path (and line) in the message.
+
+    Examples
+    --------
+    >>> import pathlib, tempfile
+    >>> from o3drbf.io.files import read_points, write_points
+    >>> from o3drbf.synthetic.shapes import Sphere
+    >>> path = write_points(pathlib.Path(tempfile.mkdtemp()) / 'sphere.xyz', Sphere(1.0).sample(100, seed=0)[0])
+    >>> points, normals, colors = read_points(path)
+    >>> points.shape, normals, colors
+    ((100, 3), None, None)
     """
     import open3d as o3d
 
