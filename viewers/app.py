@@ -177,7 +177,23 @@ def _check_png(path: str, inputs) -> Path:
 
 
 def main_view(args: argparse.Namespace) -> int:
-    """Run ``o3drbf view`` (interactive, or offscreen with ``--screenshot``)."""
+    """Run ``o3drbf view`` (interactive, or offscreen with ``--screenshot``).
+
+    Examples
+    --------
+    >>> import pathlib, tempfile
+    >>> from o3drbf.cli.commands import main
+    >>> from o3drbf.io.files import write_points
+    >>> from o3drbf.synthetic.shapes import Sphere
+    >>> folder = pathlib.Path(tempfile.mkdtemp())
+    >>> _ = write_points(folder / 'sphere.ply', *Sphere(1.0).sample(600, noise=0.002, seed=0))
+    >>> main(['view', str(folder / 'sphere.ply'), '--screenshot', str(folder / 'view.png'), '--no-poisson',
+    ...       '--resolution', '20', '--surface-count', '200', '--window-size', '320', '240'])  # doctest: +ELLIPSIS
+    o3drbf view: mesh ... wrote .../view.png
+    0
+    >>> (folder / 'view.png').stat().st_size > 0
+    True
+    """
     params = _params_from_args(args)
     depth = int(args.poisson_depth)
     if not 1 <= depth <= 12:

@@ -28,8 +28,10 @@ ENTRY_POINTS = [
     "o3drbf.evaluation.compare:compare",
     "o3drbf.io.files:read_points",
     "o3drbf.mesh.metrics:mesh_report",
+    "o3drbf.photo.pipeline:run_photos",
     "o3drbf.synthetic.shapes:Torus",
     "o3drbf.tiles.run:reconstruct_tiled",
+    "o3drbf.viewers.app:main_view",
 ]
 
 
