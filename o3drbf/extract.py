@@ -381,6 +381,17 @@ def extract_mesh(
     ------
     RuntimeError
         "No surface found": f does not cross ``level`` inside ``bounds``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from o3drbf.synthetic.shapes import Sphere
+    >>> points, normals = Sphere(1.0).sample(600, noise=0.002, seed=0)
+    >>> import o3drbf
+    >>> surface = o3drbf.reconstruct(points, normals, surface_count=200, extract_mesh=False).surface
+    >>> mesh = o3drbf.extract_mesh(surface, resolution=20)
+    >>> mesh.is_watertight(), bool(abs(np.median(np.linalg.norm(np.asarray(mesh.vertices), axis=1)) - 1) < 0.02)  # the unit sphere
+    (True, True)
     """
     import open3d as o3d
     from skimage.measure import marching_cubes

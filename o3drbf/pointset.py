@@ -50,6 +50,16 @@ class PointSet:
         The camera file, for messages.
     normals_estimated : bool
         The normals were estimated (not given).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from o3drbf.synthetic.shapes import Sphere
+    >>> points, normals = Sphere(1.0).sample(600, noise=0.002, seed=0)
+    >>> from o3drbf import PointSet
+    >>> data = PointSet.create(points, normals)
+    >>> len(data.points), data.normals is not None, round(data.spacing, 3)
+    (600, True, 0.072)
     """
 
     points: np.ndarray
@@ -205,6 +215,19 @@ def read_input(path: str | os.PathLike, cameras: str | os.PathLike | None = None
     ------
     FileNotFoundError, ValueError
         Missing or unreadable files, files without points, cameras given twice.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from o3drbf.synthetic.shapes import Sphere
+    >>> points, normals = Sphere(1.0).sample(600, noise=0.002, seed=0)
+    >>> import tempfile, pathlib
+    >>> from o3drbf import read_input
+    >>> from o3drbf.io.files import write_points
+    >>> path = write_points(pathlib.Path(tempfile.mkdtemp()) / 'sphere.ply', points, normals)
+    >>> data = read_input(path)
+    >>> len(data.points), data.normals.shape
+    (600, (600, 3))
     """
     from o3drbf.io import files
 

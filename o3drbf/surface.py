@@ -77,6 +77,19 @@ class ImplicitSurface(DataCoordinates):
         Data -> box map.
     metadata : dict
         Parameters and provenance (JSON-serializable), kept through save/load.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from o3drbf.synthetic.shapes import Sphere
+    >>> points, normals = Sphere(1.0).sample(600, noise=0.002, seed=0)
+    >>> import tempfile, pathlib, o3drbf
+    >>> surface = o3drbf.reconstruct(points, normals, surface_count=200, extract_mesh=False).surface
+    >>> path = pathlib.Path(tempfile.mkdtemp()) / 'sphere.npz'
+    >>> _ = surface.save(path)
+    >>> again = o3drbf.ImplicitSurface.load(path)
+    >>> bool(np.allclose(again(points[:5]), surface(points[:5])))
+    True
     """
 
     kernel: Kernel

@@ -79,7 +79,7 @@ def radial_error(surface, directions):
 #: or listed here; every parametrization of a listed test is slow.
 SLOW_MODULES = {
     "test_logs.py", "test_notebook.py", "test_packaging.py", "test_readme.py", "test_real_bunny.py", "test_robust_default.py",
-    "test_tiles.py", "test_tiles_outofcore.py", "test_tiles_parity.py",
+    "test_tiles.py", "test_tiles_outofcore.py", "test_tiles_parity.py", "test_tiles_lidar.py",
 }
 SLOW_TESTS = {
     "test_sparse.py": {"test_sparse_cloud_gives_one_closed_piece"},

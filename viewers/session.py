@@ -89,8 +89,17 @@ def view(source, cameras=None, *, options: ViewOptions | None = None, screenshot
 
     Examples
     --------
-    >>> view("out/samples/scan.json", screenshot="out/v.png", zoom=0.5)  # doctest: +SKIP
+    >>> import pathlib, tempfile
+    >>> from o3drbf.io.files import write_points
+    >>> from o3drbf.synthetic.shapes import Sphere
+    >>> folder = pathlib.Path(tempfile.mkdtemp())
+    >>> _ = write_points(folder / "sphere.ply", *Sphere(1.0).sample(600, noise=0.002, seed=0))
+    >>> view(folder / "sphere.ply", screenshot=folder / "view.png", poisson=False, resolution=20, surface_count=200,
+    ...      window_size=(320, 240))  # doctest: +ELLIPSIS
+    o3drbf view: mesh ... wrote .../view.png
     0
+    >>> (folder / "view.png").stat().st_size > 0
+    True
     """
     opts = ViewOptions.create(options, **overrides).validate()
     params = FitParams.from_options(opts, seed)

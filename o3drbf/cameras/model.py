@@ -142,6 +142,13 @@ class Camera:
     kind : {"pinhole", "center", "direction"}
     name : str
         Image or scan name, for messages.
+
+    Examples
+    --------
+    >>> from o3drbf.cameras.model import Camera
+    >>> camera = Camera.look_at(eye=(0.0, -3.0, 0.0), target=(0.0, 0.0, 0.0), width=64, height=48)
+    >>> camera.center.round(6).tolist(), bool(camera.in_view([[0.0, 0.0, 0.0]])[0])
+    ([0.0, -3.0, 0.0], True)
     """
 
     K: np.ndarray | None = None

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import re
 import sys
 import time
 import warnings
@@ -34,7 +35,7 @@ def add_option_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(  # its subcommands' parsers are OneLineParsers too
         prog="o3drbf",
         description="Smooth, closed surfaces from sparse, noisy 3-D points (multi-order RBF volumetric regularization).",
     )
@@ -110,6 +111,23 @@ def main(argv: list[str] | None = None) -> int:
     (Ctrl-C); 128 + N on signal N (SIGTERM: 143).  Outputs are atomic: on
     any failure or interruption no partial file is left and an existing
     output is unchanged.
+
+    Examples
+    --------
+    >>> import contextlib, io, pathlib, tempfile
+    >>> from o3drbf.cli.commands import main
+    >>> from o3drbf.io.files import write_points
+    >>> from o3drbf.synthetic.shapes import Sphere
+    >>> folder = pathlib.Path(tempfile.mkdtemp())
+    >>> _ = write_points(folder / 'sphere.ply', *Sphere(1.0).sample(600, noise=0.002, seed=0))
+    >>> main(['reconstruct', str(folder / 'sphere.ply'), '-o', str(folder / 'mesh.ply'), '--resolution', '20', '-q'])
+    0
+    >>> err = io.StringIO()
+    >>> with contextlib.redirect_stderr(err):
+    ...     main(['reconstruct', str(folder / 'sphere.ply'), '-o', str(folder / 'mesh.ply'), '--resolutoin', '20'])
+    2
+    >>> print(err.getvalue().strip())
+    o3drbf: error: unknown option --resolutoin; did you mean --resolution?
     """
     from o3drbf.io.files import signal_cleanup
 
@@ -436,6 +454,8 @@ def unknown_option_message(parser: argparse.ArgumentParser, argv: list[str]) -> 
     name = next((a for a in argv if not a.startswith("-")), None)
     if sub is not None and name in sub.choices:
         command = sub.choices[name]
+    elif sub is not None and name is not None:  # a misspelt command: its options would be judged against the wrong parser
+        return f"unknown command {name}{did_you_mean(name, list(sub.choices))} ({parser.prog} --help lists the commands)"
     options = sorted({o for a in command._actions for o in a.option_strings if o.startswith("--")})
     for arg in argv:
         if arg == "--":
@@ -452,6 +472,60 @@ def unknown_option_message(parser: argparse.ArgumentParser, argv: list[str]) -> 
             return f"unknown option {word}; did you mean {close[0]}?"
         return f"unknown option {word} ({command.prog} --help lists the options)"
     return None
+
+
+def did_you_mean(word: str, choices: list[str]) -> str:
+    """``"; did you mean CLOSEST?"`` for the choice :func:`difflib.get_close_matches` finds closest to ``word``, else ``""``."""
+    import difflib
+
+    close = difflib.get_close_matches(word, choices, n=1, cutoff=0.6)
+    return f"; did you mean {close[0]}?" if close else ""
+
+
+#: argparse's message for a value outside ``choices=`` (quotes around the words in Python 3.11-3.13, none in 3.14).
+_INVALID_CHOICE = re.compile(r"^(argument (?P<argument>[^:]+): )?invalid choice: '?(?P<value>[^']*?)'? \(choose from (?P<choices>.*)\)$")
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An :class:`argparse.ArgumentParser` whose usage errors are one line on stderr, exit 2.
+
+    argparse prints the whole usage above its message; here the message alone, the closest valid
+    value for an invalid choice (``argument --solver: invalid choice dens; did you mean dense?``,
+    ``unknown command reconstrct; did you mean reconstruct?``), and where the usage is.
+
+    Examples
+    --------
+    >>> import contextlib, io
+    >>> parser = OneLineParser(prog="tool")
+    >>> _ = parser.add_argument("--solver", choices=["dense", "fast"])
+    >>> err = io.StringIO()
+    >>> with contextlib.redirect_stderr(err):
+    ...     try:
+    ...         parser.parse_args(["--solver", "dens"])
+    ...     except SystemExit as exit:
+    ...         print(exit.code)
+    2
+    >>> print(err.getvalue().strip())
+    o3drbf: error: argument --solver: invalid choice dens; did you mean dense? (choose from dense, fast)
+    """
+
+    def error(self, message: str):
+        self.exit(2, f"o3drbf: error: {self.one_line(message)}\n")
+
+    def one_line(self, message: str) -> str:
+        """argparse's ``message`` as the line :meth:`error` prints (without the ``o3drbf: error:`` prefix)."""
+        message = " ".join(str(message).split())
+        commands = next((list(a.choices) for a in self._actions if isinstance(a, argparse._SubParsersAction)), None)
+        if commands and message == "the following arguments are required: COMMAND":
+            return f"no command given: choose from {', '.join(commands)} ({self.prog} --help lists the usage)"
+        bad = _INVALID_CHOICE.match(message)
+        if bad is None:
+            return f"{message} ({self.prog} --help lists the usage)"
+        value, argument = bad["value"], bad["argument"]
+        choices = [c.strip().strip("'") for c in bad["choices"].split(",")]
+        if argument in (None, "COMMAND"):
+            return f"unknown command {value}{did_you_mean(value, choices)} ({self.prog} --help lists the commands)"
+        return f"argument {argument}: invalid choice {value}{did_you_mean(value, choices)} (choose from {', '.join(choices)})"
 
 
 class _OnlyO3drbf(logging.Filter):

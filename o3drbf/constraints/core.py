@@ -47,6 +47,17 @@ class Constraints:
         lambda_i >= 0.
     kind : (M,) int8 array
         SURFACE, EXTERIOR, INTERIOR or SPHERE.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from o3drbf import Constraints
+    >>> from o3drbf.constraints.core import EXTERIOR, SURFACE
+    >>> on = Constraints.of_kind(np.zeros((3, 3)), SURFACE, 1e-4)
+    >>> off = Constraints.of_kind(np.ones((2, 3)), EXTERIOR, 1e-2)
+    >>> both = Constraints.concat(on, off)
+    >>> both.values.tolist(), both.counts()['exterior']
+    ([0.0, 0.0, 0.0, -1.0, -1.0], 2)
     """
 
     points: np.ndarray

@@ -25,14 +25,14 @@ A method that fails (Open3D raises, or returns an empty mesh) gives a row
 with an ``error`` and no measures, instead of stopping the comparison.
 
 Memory: ``peak_bytes`` is the peak of Python-level allocations during the
-method, measured with :mod:`tracemalloc`.  NumPy arrays are counted (NumPy
+method, as :mod:`tracemalloc` traces them.  NumPy arrays are counted (NumPy
 reports its buffers to tracemalloc); memory allocated inside Open3D's or
 Numba's compiled code is *not*, so for the Open3D methods it is a lower
 bound.  ``rss_peak_mb`` (``comparison.md``'s one memory column, "Peak
 memory (MB)") sees every allocation, Open3D's too:
 the peak of the process's resident set above its level when the method
-started, sampled every 5 ms with psutil by a background thread
-(None where psutil cannot read it; allocations shorter than 5 ms can be missed, and
+started, sampled with psutil by a background thread at the sampler's ``interval``
+(None where psutil cannot read it; allocations shorter than one interval can be missed, and
 pages freed earlier but kept by the allocator are not counted again).
 Times are wall-clock seconds with tracemalloc on.
 

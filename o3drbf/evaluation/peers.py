@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from o3drbf.progress import native_output_logged
 from o3drbf.validation import as_points, as_vectors, check_number
 
 __all__ = ["poisson"]
@@ -33,7 +34,8 @@ def poisson(points, normals, depth: int = 8, density_quantile: float = 0.0):
     q = check_number("density_quantile", density_quantile, low=0.0, high=1.0)
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
     pcd.normals = o3d.utility.Vector3dVector(nrm)
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+    # PoissonRecon prints its warnings ("bad average roots") past Open3D's verbosity: one log line at -v instead
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error), native_output_logged("Open3D Poisson"):
         mesh, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pcd, depth=depth)
     if q > 0:
         dens = np.asarray(dens)

@@ -511,6 +511,14 @@ def mesh_report(mesh: Any, self_intersections: bool = True) -> dict[str, Any]:
     ------
     ValueError
         If ``mesh`` is empty, has no triangles or has non-finite vertices.
+
+    Examples
+    --------
+    >>> import open3d as o3d
+    >>> from o3drbf.mesh.metrics import mesh_report
+    >>> report = mesh_report(o3d.geometry.TriangleMesh.create_torus(0.6, 0.25, 24, 12))
+    >>> report['watertight'], report['euler_characteristic'], report['genus'], report['components']
+    (True, 0, 1, 1)
     """
     verts, tris = mesh_arrays(mesh)
     nf = tris.shape[0]

@@ -759,7 +759,19 @@ assert set(_FLAT) == set(DEFAULTS), set(_FLAT) ^ set(DEFAULTS)
 
 @dataclass(frozen=True)
 class Options:
-    """All options of :func:`o3drbf.reconstruct` and of the tiled entry points, one group per stage."""
+    """All options of :func:`o3drbf.reconstruct` and of the tiled entry points, one group per stage.
+
+    Examples
+    --------
+    >>> from o3drbf import Options
+    >>> options = Options.create(resolution=64, kernel='thinplate')
+    >>> options.extract.resolution, options.parameters.kernel
+    (64, 'thinplate')
+    >>> Options.create(resolutoin=64)
+    Traceback (most recent call last):
+    ...
+    ValueError: unknown option(s) resolutoin; valid: register, outliers, ...
+    """
 
     registration: RegistrationOptions = field(default_factory=RegistrationOptions)
     outliers: OutlierOptions = field(default_factory=OutlierOptions)

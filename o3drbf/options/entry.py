@@ -159,6 +159,12 @@ class PhotoOptions:
         nearly noise-free).  ``outlier_radius`` None: 2.5 voxels.
     iou_stride : int
         Check the silhouettes at every ``iou_stride``-th pixel.
+
+    Examples
+    --------
+    >>> opts = PhotoOptions.create(voxels=96, surface_count=2000)
+    >>> opts.carving.resolution, opts.surface.constraints.surface_count
+    (96, 2000)
     """
 
     bounds: object = PHOTO_DEFAULTS["bounds"]
@@ -219,6 +225,12 @@ class CompareOptions:
     o3drbf : Options
         What the o3drbf rows run (each with its own kernel):
         :data:`o3drbf.options.DEFAULTS` with :data:`o3drbf.options.COMPARE_OVERRIDES`.
+
+    Examples
+    --------
+    >>> opts = CompareOptions.create(methods="multiorder,poisson", poisson_depth=7, surface_count=800)
+    >>> opts.methods, opts.poisson_depth, opts.o3drbf.constraints.surface_count
+    ('multiorder,poisson', 7, 800)
     """
 
     methods: object = COMPARE_DEFAULTS["methods"]
@@ -294,6 +306,12 @@ class ViewOptions:
         A finished mesh: colour it by its distance to this mesh.
     refit : bool
         A finished mesh: fit its vertices instead of showing it.
+
+    Examples
+    --------
+    >>> opts = ViewOptions.create(zoom=0.5, resolution=48)
+    >>> opts.zoom, opts.fit.extract.resolution
+    (0.5, 48)
     """
 
     fit: Options = field(default_factory=lambda: Options.create(**VIEWER_OVERRIDES))

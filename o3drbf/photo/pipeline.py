@@ -174,9 +174,18 @@ def run_photos(images_dir, calibration=None, *, options: PhotoOptions | None = N
 
     Examples
     --------
-    >>> r = run_photos("../shared/data/middlebury_templeSparseRing", voxels=64, resolution=64)  # doctest: +SKIP
-    >>> r.stats["watertight"]  # doctest: +SKIP
-    True
+    >>> import numpy as np, open3d as o3d
+    >>> from o3drbf.photo.pipeline import run_photos
+    >>> from o3drbf.synthetic.render import render_views
+    >>> from o3drbf.synthetic.scans import camera_ring
+    >>> sphere = o3d.geometry.TriangleMesh.create_sphere(1.0, resolution=20).paint_uniform_color([0.8, 0.3, 0.2])
+    >>> cameras = camera_ring((0, 0, 0), 1.0, n_views=6, elevation=30, width=64, height=48, fov=50)
+    >>> images = [view.image for view in render_views(sphere, cameras)]
+    >>> result = run_photos(None, images=images, cameras=cameras, bounds=[[-1.25] * 3, [1.25] * 3], voxels=32,
+    ...                     surface_count=300, resolution=24)
+    >>> radii = np.linalg.norm(np.asarray(result.mesh.vertices), axis=1)
+    >>> result.mesh.is_watertight(), bool(abs(np.median(radii) - 1) < 0.05), result.mesh.has_vertex_colors()
+    (True, True, True)
     """
     from o3drbf.pipeline import reconstruct
     from o3drbf.mesh.color import color_mesh

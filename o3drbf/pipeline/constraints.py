@@ -46,6 +46,18 @@ def build_constraints(data: PointSet, options: ConstraintOptions = ConstraintOpt
     Returns
     -------
     ConstraintSet
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from o3drbf.synthetic.shapes import Sphere
+    >>> points, normals = Sphere(1.0).sample(600, noise=0.002, seed=0)
+    >>> from o3drbf import PointSet
+    >>> data = PointSet.create(points, normals)
+    >>> from o3drbf import build_constraints
+    >>> cset = build_constraints(data)
+    >>> cset.constraints.counts()
+    {'surface': 600, 'exterior': 60, 'interior': 0, 'sphere': 64}
     """
     options.validate()
     if data.normals is None and data.cameras is None:

@@ -38,6 +38,19 @@ def fit(constraints: Constraints, kernel: Kernel, normalization: Normalization, 
     Returns
     -------
     ImplicitSurface, Solution
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from o3drbf import Constraints, MultiOrder, Normalization, fit
+    >>> from o3drbf.constraints.core import SPHERE, SURFACE
+    >>> from o3drbf.synthetic.shapes import Sphere
+    >>> points, _ = Sphere(0.5).sample(200, seed=0)  # in the normalized box already
+    >>> outer, _ = Sphere(0.9).sample(40, seed=1)
+    >>> constraints = Constraints.concat(Constraints.of_kind(points, SURFACE, 1e-4), Constraints.of_kind(outer, SPHERE, 1e-4))
+    >>> surface, solution = fit(constraints, MultiOrder(delta=8, tau=0.02), Normalization.identity())
+    >>> bool(surface([[0.0, 0.0, 0.0]])[0] > 0 > surface([[0.7, 0.0, 0.0]])[0])  # positive inside, negative outside
+    True
     """
     sol = solve(kernel, constraints.points, constraints.values, constraints.smoothing, method=solver, progress=progress, **solve_options)
     return surface_of(sol, constraints.points, kernel, normalization), sol
@@ -209,6 +222,19 @@ def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = F
     robust : dict or None
         Rounds, down-weighted and dropped constraints, scale, seconds, and
         ``constraints`` (those of the final fit); None when not robust.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from o3drbf.synthetic.shapes import Sphere
+    >>> points, normals = Sphere(1.0).sample(600, noise=0.002, seed=0)
+    >>> from o3drbf import PointSet
+    >>> data = PointSet.create(points, normals)
+    >>> from o3drbf import build_constraints, choose_parameters, fit_surface
+    >>> cset = build_constraints(data)
+    >>> surface, solution, robust = fit_surface(cset, choose_parameters(data, cset))
+    >>> solution.method, bool(abs(surface(points)).max() < 0.01)
+    ('dense', True)
     """
     options.validate()
     c = cset.constraints

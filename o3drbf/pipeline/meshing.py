@@ -61,6 +61,21 @@ def mesh_surface(surface: ImplicitSurface, options: ExtractOptions = ExtractOpti
     ------
     RuntimeError
         No zero crossing, with the likely cause.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from o3drbf.synthetic.shapes import Sphere
+    >>> points, normals = Sphere(1.0).sample(600, noise=0.002, seed=0)
+    >>> from o3drbf import PointSet
+    >>> data = PointSet.create(points, normals)
+    >>> from o3drbf import build_constraints, choose_parameters, fit_surface, mesh_surface
+    >>> from o3drbf.options import ExtractOptions
+    >>> cset = build_constraints(data)
+    >>> surface, _, _ = fit_surface(cset, choose_parameters(data, cset))
+    >>> mesh = mesh_surface(surface, ExtractOptions(resolution=20))
+    >>> mesh.is_watertight()
+    True
     """
     from o3drbf.extract import extract_mesh
 
@@ -83,7 +98,18 @@ def mesh_surface(surface: ImplicitSurface, options: ExtractOptions = ExtractOpti
 
 
 def colour(mesh, data: PointSet):
-    """Per-vertex colour from the points' colours (nearest points, distance weighted); the mesh unchanged without them."""
+    """Per-vertex colour from the points' colours (nearest points, distance weighted); the mesh unchanged without them.
+
+    Examples
+    --------
+    >>> import numpy as np, open3d as o3d
+    >>> from o3drbf import PointSet, colour
+    >>> mesh = o3d.geometry.TriangleMesh.create_sphere(1.0, resolution=10)
+    >>> points = np.asarray(mesh.vertices) * 1.01
+    >>> red = PointSet.create(points, colors=np.tile([1.0, 0.0, 0.0], (len(points), 1)))
+    >>> np.asarray(colour(mesh, red).vertex_colors)[0]
+    array([1., 0., 0.])
+    """
     if mesh is None or data.colors is None:
         return mesh
     from o3drbf.mesh.color import color_mesh
@@ -114,6 +140,18 @@ def mesh_confidence(surface: ImplicitSurface, mesh, constraints: Constraints, sp
     mesh : open3d.geometry.TriangleMesh or None
         Trimmed when ``options.trim`` is set (an open surface where nothing was seen).
     triangles_removed : int
+
+    Examples
+    --------
+    >>> import o3drbf
+    >>> from o3drbf import mesh_confidence
+    >>> from o3drbf.options import ConfidenceOptions
+    >>> from o3drbf.synthetic.shapes import Sphere
+    >>> points, normals = Sphere(1.0).sample(600, noise=0.002, seed=0)
+    >>> r = o3drbf.reconstruct(points, normals, surface_count=200, resolution=20)
+    >>> confidence, mesh, removed = mesh_confidence(r.surface, r.mesh, r.constraints, options=ConfidenceOptions(confidence=True))
+    >>> len(confidence.confidence) == len(r.mesh.vertices), removed
+    (True, 0)
     """
     options.validate()
     if mesh is None or not options.wanted:

@@ -31,6 +31,20 @@ def remove_outliers(data: PointSet, options: OutlierOptions = OutlierOptions(), 
     Returns
     -------
     PointSet, OutlierReport
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from o3drbf.synthetic.shapes import Sphere
+    >>> points, normals = Sphere(1.0).sample(600, noise=0.002, seed=0)
+    >>> from o3drbf import PointSet
+    >>> data = PointSet.create(points, normals)
+    >>> import numpy as np
+    >>> from o3drbf import remove_outliers
+    >>> noisy = PointSet.create(np.vstack([points, [[3.0, 3.0, 3.0]]]), np.vstack([normals, [[0.0, 0.0, 1.0]]]))
+    >>> kept, report = remove_outliers(noisy)
+    >>> len(kept.points), report.removed
+    (600, 1)
     """
     options.validate()
     method = options.method

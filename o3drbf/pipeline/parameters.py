@@ -41,6 +41,19 @@ def choose_parameters(data: PointSet, cset: ConstraintSet, options: ParameterOpt
     Returns
     -------
     Parameters
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from o3drbf.synthetic.shapes import Sphere
+    >>> points, normals = Sphere(1.0).sample(600, noise=0.002, seed=0)
+    >>> from o3drbf import PointSet
+    >>> data = PointSet.create(points, normals)
+    >>> from o3drbf import build_constraints, choose_parameters
+    >>> cset = build_constraints(data)
+    >>> params = choose_parameters(data, cset)
+    >>> params.kernel.name, len(params.smoothing) == len(cset.constraints.points)
+    ('multiorder', True)
     """
     options.validate()
     n = len(data)

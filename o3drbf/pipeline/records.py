@@ -193,6 +193,16 @@ class Report:
         With ``confidence`` or ``trim``: the per-vertex confidence's mean,
         min, q25 and median (over the final mesh), ``trim`` (the threshold or
         None) and ``triangles_removed``; None when not asked.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from o3drbf.synthetic.shapes import Sphere
+    >>> points, normals = Sphere(1.0).sample(600, noise=0.002, seed=0)
+    >>> import o3drbf
+    >>> report = o3drbf.reconstruct(points, normals, surface_count=200, resolution=20).report
+    >>> report.points, report.surface_constraints, report.sphere_constraints, report.parameter_source['delta']
+    (600, 204, 64, 'auto')
     """
 
     points: int = 0
@@ -274,6 +284,16 @@ class Reconstruction:
         The points kept (data coordinates): after merging repeats,
         registering the scans and removing outliers; what the fitness error
         is measured over.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from o3drbf.synthetic.shapes import Sphere
+    >>> points, normals = Sphere(1.0).sample(600, noise=0.002, seed=0)
+    >>> import o3drbf
+    >>> result = o3drbf.reconstruct(points, normals, surface_count=200, resolution=20)
+    >>> type(result).__name__, len(result.mesh.triangles) > 1000, result.solution.method
+    ('Reconstruction', True, 'dense')
     """
 
     surface: ImplicitSurface

@@ -33,6 +33,18 @@ def register_scans(data: PointSet, options: RegistrationOptions = RegistrationOp
         What :func:`o3drbf.prep.registration.refine_registration` found
         (None when it did not run: ``register="none"``, no cameras or no
         ``point_camera``).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from o3drbf.synthetic.shapes import Sphere
+    >>> points, normals = Sphere(1.0).sample(600, noise=0.002, seed=0)
+    >>> from o3drbf import PointSet
+    >>> data = PointSet.create(points, normals)
+    >>> from o3drbf import register_scans
+    >>> moved, registration = register_scans(data)  # no cameras: nothing to register
+    >>> moved is data, registration is None
+    (True, True)
     """
     options.validate()
     if options.method == "none" or data.cameras is None or data.point_camera is None:

@@ -83,6 +83,18 @@ def reconstruct(points, normals=None, *, cameras=None, point_camera=None, colors
 
     with y = 0 at surface constraints and -1 at exterior ones, so that
     f(c_i) = y_i - lambda_i w_i.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from o3drbf.synthetic.shapes import Sphere
+    >>> points, normals = Sphere(1.0).sample(600, noise=0.002, seed=0)
+    >>> import o3drbf
+    >>> result = o3drbf.reconstruct(points, normals, surface_count=200, resolution=20)
+    >>> result.mesh.is_watertight(), result.report.surface_constraints
+    (True, 204)
+    >>> bool(abs(result.surface(points)).max() < 0.01)  # f = 0 on the points (data units)
+    True
     """
     t_start = time.perf_counter()
     if "extract" in option_values:  # the older keyword

@@ -70,6 +70,13 @@ class Normalization:
 
     The longest side of the data's bounding box spans exactly 2 (the box the
     paper's delta, tau and lambda refer to); the other sides are centred.
+
+    Examples
+    --------
+    >>> from o3drbf import Normalization
+    >>> norm = Normalization.from_points([[0.0, 0.0, 0.0], [4.0, 2.0, 1.0]])
+    >>> norm.forward([[4.0, 2.0, 1.0]]).tolist(), norm.inverse([[-1.0, -0.5, -0.25]]).tolist()
+    ([[1.0, 0.5, 0.25]], [[0.0, 0.0, 0.0]])
     """
 
     center: np.ndarray

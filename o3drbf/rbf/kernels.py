@@ -65,7 +65,16 @@ _SMALL_AR = 1e-3
 
 
 class Kernel(ABC):
-    """A radial basis function phi(r)."""
+    """A radial basis function phi(r).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from o3drbf import Kernel, make_kernel
+    >>> kernel = make_kernel('thinplate')
+    >>> isinstance(kernel, Kernel), kernel(np.array([0.0, 2.0])).tolist(), kernel.polynomial_degree
+    (True, [0.0, 8.0], 1)
+    """
 
     name: str = ""
     polynomial_degree: int = 0
@@ -145,6 +154,15 @@ class MultiOrder(Kernel):
     confluent, > 1 damped oscillation) are supported; see the module notes.
     phi(0) = 1 / (4 pi delta sqrt(1 + 2 delta tau)), phi'(0) = 0, and far away
     phi ~ 1 / (4 pi delta^2 r).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from o3drbf import MultiOrder
+    >>> kernel = MultiOrder(delta=8, tau=0.02)
+    >>> values = kernel(np.array([0.0, 0.1, 1.0]))
+    >>> bool(values[0] == kernel.value_at_zero and values[0] > values[1] > values[2] > 0)  # decreasing, positive
+    True
     """
 
     name = "multiorder"
@@ -332,6 +350,13 @@ class ThinPlate(Kernel):
 
     Only conditionally positive definite (order 2): the system is solved as a
     symmetric indefinite saddle-point system.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from o3drbf import ThinPlate
+    >>> ThinPlate()(np.array([1.0, 2.0])).tolist(), ThinPlate().positive_definite
+    ([1.0, 8.0], False)
     """
 
     name = "thinplate"
@@ -361,6 +386,13 @@ class Gaussian(Kernel):
     ----------
     sigma : float
         Width, in the normalized 2x2x2 box.  Valid: ``0 < sigma <= 100``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from o3drbf import Gaussian
+    >>> Gaussian(sigma=0.5)(np.array([0.0, 0.5])).round(4).tolist()
+    [1.0, 0.3679]
     """
 
     name = "gaussian"
@@ -410,6 +442,21 @@ def register_kernel(cls: type[Kernel]) -> type[Kernel]:
     (``reconstruct(kernel=name)``, the command line's ``--kernel``, compare).
     Kernels without compiled or fast sums are evaluated by NumPy and solved
     densely.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from o3drbf import KERNELS, Kernel, make_kernel, register_kernel
+    >>> @register_kernel
+    ... class Cubic(Kernel):
+    ...     name, polynomial_degree, positive_definite = 'cubic_example', 1, False
+    ...     def __call__(self, r): return np.asarray(r, float) ** 3
+    ...     def derivative(self, r): return 3 * np.asarray(r, float) ** 2
+    ...     def derivative_over_r(self, r): return 3 * np.asarray(r, float)
+    ...     params = property(lambda self: {})
+    >>> float(make_kernel('cubic_example')(2.0))
+    8.0
+    >>> _ = KERNELS.pop('cubic_example')  # registered for this example only
     """
     if not (isinstance(cls, type) and issubclass(cls, Kernel)) or not cls.name:
         raise ValueError("register_kernel takes a Kernel subclass with a name")
@@ -447,6 +494,14 @@ def make_kernel(name: str = "multiorder", **params: float) -> Kernel:
     ------
     ValueError
         For an unknown name or a parameter the kernel does not take.
+
+    Examples
+    --------
+    >>> from o3drbf import make_kernel
+    >>> make_kernel('gaussian', sigma=0.2)
+    Gaussian(sigma=0.2)
+    >>> make_kernel('multiorder', delta=8, tau=0.02)
+    MultiOrder(delta=8, tau=0.02)
     """
     if isinstance(name, Kernel):
         return name

@@ -123,6 +123,16 @@ def solve(
     MemoryError
         A dense solve that would not fit in ``memory_limit``; the message
         names the limit and the alternatives.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from o3drbf import MultiOrder, solve
+    >>> rng = np.random.default_rng(0)
+    >>> centres, values = rng.uniform(-1, 1, (50, 3)), rng.normal(size=50)
+    >>> solution = solve(MultiOrder(delta=8, tau=0.02), centres, values)
+    >>> solution.method, bool(solution.residual < 1e-8), solution.weights.shape
+    ('dense', True, (50,))
     """
     t0 = time.perf_counter()
     centres, y, lam = system_inputs(centres, values, smoothing, method)

@@ -17,7 +17,17 @@ __all__ = ["Solution", "ConvergenceWarning", "MemoryRefusal", "available_memory"
 
 
 class ConvergenceWarning(UserWarning):
-    """An iterative solve stopped before reaching its tolerance."""
+    """An iterative solve stopped before reaching its tolerance.
+
+    Examples
+    --------
+    >>> import warnings
+    >>> from o3drbf import ConvergenceWarning
+    >>> with warnings.catch_warnings():
+    ...     warnings.simplefilter('error', ConvergenceWarning)  # an unconverged solve raises instead of warning
+    ...     issubclass(ConvergenceWarning, UserWarning)
+    True
+    """
 
 
 class MemoryRefusal(MemoryError):
@@ -83,6 +93,15 @@ class Solution:
         Krylov iterations (0 for dense).
     info : dict
         Solver-specific record (factorization, preconditioner, split).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from o3drbf import Gaussian, solve
+    >>> centres = np.random.default_rng(0).uniform(-1, 1, (30, 3))
+    >>> solution = solve(Gaussian(sigma=0.5), centres, np.ones(30), smoothing=1e-3)
+    >>> type(solution).__name__, solution.method, solution.iterations
+    ('Solution', 'dense', 0)
     """
 
     weights: np.ndarray

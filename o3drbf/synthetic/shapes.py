@@ -47,7 +47,17 @@ class Sphere:
 
 @dataclass(frozen=True)
 class Torus:
-    """A torus around the z axis: major radius ``R``, tube radius ``r``."""
+    """A torus around the z axis: major radius ``R``, tube radius ``r``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from o3drbf.synthetic.shapes import Torus
+    >>> points, normals = Torus(0.6, 0.25).sample(500, seed=1)
+    >>> ring = np.hypot(points[:, 0], points[:, 1]) - 0.6  # distance from the tube's centre circle, in its plane
+    >>> bool(np.allclose(np.hypot(ring, points[:, 2]), 0.25)), normals.shape
+    (True, (500, 3))
+    """
 
     R: float = 0.7
     r: float = 0.25

@@ -61,7 +61,10 @@ def tile_client(client=None, tasks: int = 2, workers: int = 2, memory_limit=None
             from o3drbf.solvers.base import available_memory
 
             memory_limit = int(0.8 * available_memory() / workers)
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, memory_limit=memory_limit, dashboard_address=":0")
+        # the workers' own Dask log lines (memory pauses, restarts) print straight to stderr: only errors, all with -v
+        quiet = logging.WARNING if log.isEnabledFor(logging.INFO) else logging.ERROR
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, memory_limit=memory_limit, dashboard_address=":0",
+                               silence_logs=quiet)
         c = Client(cluster)
         log.info("Dask LocalCluster: %d workers x 1 thread, %s per worker; dashboard %s", workers, _size(memory_limit), c.dashboard_link)
         try:

@@ -63,7 +63,7 @@ def reconstruct_tiled(points, normals=None, *, cameras=None, point_camera=None, 
         ``min``, ``median``, ``max``), ``denoised_tiles``, ``cameras``,
         ``overlap`` and ``min_overlap``, ``fit_seconds``, ``extract_seconds``,
         ``workers`` (per worker: ``tasks``, ``seconds`` of task time and
-        ``peak_rss`` bytes, measured on the worker during the fit and the
+        ``peak_rss`` bytes, the worker process's peak during the fit and the
         meshing), the extraction record, ``vertices``, ``triangles``.
 
     Examples

@@ -111,6 +111,27 @@ def test_a_misspelt_option_is_one_line_with_a_suggestion(argv, expected, capsys)
     assert captured.err == expected + "\n" and captured.out == ""
 
 
+@pytest.mark.parametrize("argv, expected", [
+    (["reconstrct", "x.ply", "-o", "m.ply", "--resolution", "64"],
+     "o3drbf: error: unknown command reconstrct; did you mean reconstruct? (o3drbf --help lists the commands)"),
+    (["veiw", "x.ply"], "o3drbf: error: unknown command veiw; did you mean view? (o3drbf --help lists the commands)"),
+    (["zzz"], "o3drbf: error: unknown command zzz (o3drbf --help lists the commands)"),
+    (["reconstruct", "x.ply", "-o", "m.ply", "--solver", "dens"],
+     "o3drbf: error: argument --solver: invalid choice dens; did you mean dense? (choose from auto, dense, iterative, fast)"),
+    (["reconstruct", "x.ply"], "o3drbf: error: the following arguments are required: -o/--output (o3drbf reconstruct --help lists the usage)"),
+    ([], "o3drbf: error: no command given: choose from reconstruct, compare, photos, view (o3drbf --help lists the usage)"),
+])
+def test_usage_errors_are_one_line_with_a_suggestion(argv, expected, capsys):
+    """A misspelt command or choice, a missing argument: one line (no usage block), the closest valid word (difflib), exit 2."""
+    try:
+        code = main(argv)
+    except SystemExit as e:  # argparse's errors exit; a misspelt command is caught before argparse, returned
+        code = e.code
+    assert code == 2
+    captured = capsys.readouterr()
+    assert captured.err == expected + "\n" and captured.out == ""
+
+
 def test_a_unique_prefix_of_an_option_is_still_accepted(scan, tmp_path):
     out = tmp_path / "prefix.ply"
     assert main(["reconstruct", str(scan / "torus.ply"), "-o", str(out), "--surface-c", "300", "--resol", "24", "-q"]) == 0

@@ -230,3 +230,90 @@ def test_only_o3drbf_lines_without_v_and_nothing_with_q(tmp_path):
     assert err["tiles"] == "" and out["tiles"].startswith("=== exit 0"), err["tiles"][-2000:]  # a real LocalCluster started and stopped
     before = re.search(r"open3d verbosity before (\w+)", proc.stdout).group(1)
     assert proc.stdout.rstrip().endswith(f"open3d verbosity after {before}")  # restored after the commands
+
+
+WORKER_DRIVER = textwrap.dedent(
+    """
+    import logging, sys
+
+    def pausing():  # what a worker's memory monitor logs when it pauses: printed by the worker process itself
+        logging.getLogger("distributed.worker.memory").warning("Worker is at 81% memory usage. Pausing worker.")
+        logging.getLogger("distributed.worker").error("an error of Dask's")
+        return 1
+
+    if __name__ == "__main__":
+        from o3drbf.tiles.cluster import tile_client
+
+        logging.getLogger("o3drbf").setLevel(logging.INFO if sys.argv[1] == "-v" else logging.WARNING)
+        with tile_client(None, tasks=2, workers=1) as client:
+            print(client.submit(pausing).result(), flush=True)
+    """
+)
+
+
+@pytest.mark.parametrize("verbose", [False, True])
+def test_dask_workers_own_lines_only_with_v(verbose):
+    """The workers of a LocalCluster print their Dask log lines themselves (``... - distributed.worker.memory - WARNING - ...``),
+    past the command line's log handlers: without -v (o3drbf's logger below INFO) only their errors reach stderr."""
+    env = dict(os.environ, PYTHONPATH=str(REPO), OMP_NUM_THREADS="1")
+    proc = subprocess.run([sys.executable, "-c", WORKER_DRIVER, "-v" if verbose else "-"], capture_output=True, text=True, env=env, timeout=180)
+    assert proc.returncode == 0 and proc.stdout.strip() == "1", proc.stderr[-2000:]
+    assert "an error of Dask's" in proc.stderr  # the worker's stderr reaches ours
+    assert ("Pausing worker" in proc.stderr) is verbose, proc.stderr[-2000:]
+
+
+POISSON_DRIVER = textwrap.dedent(
+    """
+    import ctypes, logging, os, sys
+    import open3d as o3d
+    from o3drbf.cli.commands import main
+
+    original = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson
+    libc = ctypes.CDLL(None)
+
+    def chatty(*args, **kwargs):  # what PoissonRecon prints now and then (its threads decide), past Open3D's verbosity
+        os.write(2, b"[WARNING] FEMTree.IsoSurface.specialized.inl (Line 1858)\\n          Extract\\n          bad average roots: 3\\n")
+        libc.printf(b"[Open3D DEBUG] Input Points / Samples: 1000 / 900\\n")  # into C's stdout buffer
+        return original(*args, **kwargs)
+
+    o3d.geometry.TriangleMesh.create_from_point_cloud_poisson = chatty
+    d = sys.argv[1]
+    runs = {"compare": ["compare", f"{d}/scan.json", "--methods", "poisson,poisson-tutorial", "--poisson-depth", "5", "--resolution", "24",
+                        "-o", f"{d}/cmp"],
+            "view": ["view", f"{d}/scan.json", "--screenshot", f"{d}/v.png", "--resolution", "20", "--surface-count", "200",
+                     "--poisson-depth", "5", "--window-size", "400", "300"]}
+    for name in ("compare", "view", "view at INFO"):
+        if name == "view at INFO":  # as -v sets it: the caught text is logged at INFO
+            logging.getLogger("o3drbf").setLevel(logging.INFO)
+        for stream in (sys.stdout, sys.stderr):
+            print(f"=== {name}", file=stream, flush=True)
+        code = main(runs[name.split()[0]])
+        print(f"=== exit {code}", flush=True)
+    """
+)
+
+
+def test_poisson_chatter_never_reaches_the_terminal(tmp_path):
+    """PoissonRecon prints "[WARNING] ... bad average roots: 3" to stderr past Open3D's verbosity (not on every run: on the
+    sample scan, now and then), "[Open3D DEBUG]" lines go to C's stdout: `o3drbf compare` and `o3drbf view` show none of it;
+    at INFO (-v) it is one log line."""
+    import open3d as o3d
+
+    from o3drbf.synthetic.scans import range_scans, write_scan_json
+
+    torus = o3d.geometry.TriangleMesh.create_torus(0.6, 0.25, 48, 24)
+    points, point_camera, cameras = range_scans(torus, n_views=3, width=48, height=36, noise=0.002, seed=0)
+    write_scan_json(tmp_path / "scan.json", points, cameras, point_camera)
+    env = dict(os.environ, PYTHONPATH=str(REPO), O3DRBF_NO_PROGRESS="1", OMP_NUM_THREADS="2")
+    proc = subprocess.run([sys.executable, "-c", POISSON_DRIVER, str(tmp_path)], capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 0 and proc.stdout.count("=== exit 0") == 3, proc.stdout[-2000:] + proc.stderr[-2000:]
+    pattern = r"^=== (compare|view|view at INFO)\n"
+    out = dict(zip(*[iter(re.split(pattern, proc.stdout, flags=re.M)[1:])] * 2))
+    err = dict(zip(*[iter(re.split(pattern, proc.stderr, flags=re.M)[1:])] * 2))
+    assert out["compare"].startswith("o3drbf compare: ") and out["view"].startswith("o3drbf view: mesh"), out
+    for name in out:
+        assert "bad average roots" not in out[name] and "[Open3D DEBUG]" not in out[name], out[name]
+    assert err["compare"] == "" and err["view"] == "", err
+    caught = [line for line in err["view at INFO"].splitlines() if "Poisson" in line]
+    assert caught == ["o3drbf: Open3D Poisson printed: [WARNING] FEMTree.IsoSurface.specialized.inl (Line 1858) Extract bad average roots: 3 "
+                      "[Open3D DEBUG] Input Points / Samples: 1000 / 900"], err["view at INFO"]
