@@ -13,12 +13,16 @@ import numpy as np
 from o3drbf.io.files import atomic_path
 
 __all__ = ["headless", "to_pyvista", "side_by_side", "Panel", "grid", "views_around", "PIECE_COLOR", "HEADER_HEIGHT",
-           "plot", "in_notebook", "jupyter_backend"]
+           "plot", "in_notebook", "jupyter_backend", "CONSTRAINT_COLORS", "CONSTRAINT_POINT_SIZE"]
 
 #: Mesh, point and exterior colours of :func:`plot` and :func:`side_by_side`.
 MESH_COLOR = "#c8d2e6"
 POINT_COLOR = "#cc3311"
-EXTERIOR_COLOR = "#3366cc"
+#: Surface constraints blue and exterior constraints green, as in the paper's Fig. 8: the same in
+#: ``Reconstruction.plot(constraints=True)`` and in ``o3drbf view``.
+CONSTRAINT_COLORS = {"surface": "#1f4fd8", "exterior": "#12a03c"}
+#: Marker size (pixels) of constraints drawn over a surface: small enough to leave the surface visible.
+CONSTRAINT_POINT_SIZE = 3.0
 
 
 def headless() -> None:
@@ -342,9 +346,9 @@ def plot(mesh, *, points=None, exterior=None, compare=None, title: str | None = 
     mesh : open3d.geometry.TriangleMesh
         The mesh of the first panel.
     points : (N, 3) array_like, optional
-        Points drawn small (red) over the first panel, e.g. the surface constraints.
+        Points drawn small (blue, ``CONSTRAINT_COLORS["surface"]``) over the first panel, e.g. the surface constraints.
     exterior : (M, 3) array_like, optional
-        Points drawn small (blue) over the first panel, e.g. the exterior constraints.
+        Points drawn small (green, ``CONSTRAINT_COLORS["exterior"]``) over the first panel, e.g. the exterior constraints.
     compare : dict of str to open3d.geometry.TriangleMesh, optional
         Further meshes, one panel each, right of the first, seen from the same (linked) camera.
     title : str, optional
@@ -396,9 +400,10 @@ def plot(mesh, *, points=None, exterior=None, compare=None, title: str | None = 
         plotter.add_mesh(to_pyvista(m), color=MESH_COLOR, smooth_shading=True, specular=0.3)
         plotter.view_vector(direction, viewup=viewup)  # framed on the mesh, not on far-away points
         if i == 0:
-            for extra, color in ((points, POINT_COLOR), (exterior, EXTERIOR_COLOR)):
+            for extra, color in ((points, CONSTRAINT_COLORS["surface"]), (exterior, CONSTRAINT_COLORS["exterior"])):
                 if extra is not None and len(extra):
-                    plotter.add_points(np.asarray(extra, dtype=float).reshape(-1, 3), color=color, point_size=3, reset_camera=False)
+                    plotter.add_points(np.asarray(extra, dtype=float).reshape(-1, 3), color=color, point_size=CONSTRAINT_POINT_SIZE,
+                                       render_points_as_spheres=True, reset_camera=False)
         plotter.add_text(name if name is not None else f"{len(m.triangles):,} triangles", position=(12, size[1] - 32), font_size=12, color="black")
     if len(panels) > 1:
         plotter.link_views()

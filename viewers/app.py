@@ -50,6 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from o3drbf.options import VIEW_LAYERS, VIEWER_DISPLAY, ViewOptions
+from o3drbf.pictures import CONSTRAINT_COLORS, CONSTRAINT_POINT_SIZE
 from o3drbf.viewers.geometry import camera_frusta, look_at, subsample, view_up, wind_like_normals
 from o3drbf.viewers.keys import LayerToggles, own_keys, pick_under_mouse, press_key
 from o3drbf.viewers.inputs import ViewInput, model_constraints
@@ -61,8 +62,7 @@ __all__ = ["ViewerApp", "COLORS", "LAYERS", "SLIDERS", "check_png"]
 #: green, as in the paper's Fig. 8.
 COLORS = {
     "points": VIEWER_DISPLAY["point_color"],
-    "surface": "#1f4fd8",
-    "exterior": "#12a03c",
+    **CONSTRAINT_COLORS,  # the same as Reconstruction.plot(constraints=True)
     "sphere": "#8fd19e",
     "cameras": "#e07b00",
     "mesh": "#e8dcc8",
@@ -548,7 +548,7 @@ class ViewerApp(LayerToggles):
         for kind in ("surface", "exterior", "sphere"):
             pts = None if res.constraints is None else res.constraints.get(kind)
             if pts is not None and len(pts):
-                self.actors[kind] = p.add_points(self.shown(pts), color=COLORS[kind], point_size=5.0, render_points_as_spheres=False, lighting=False, name=kind, reset_camera=False, pickable=False)
+                self.actors[kind] = p.add_points(self.shown(pts), color=COLORS[kind], point_size=CONSTRAINT_POINT_SIZE, render_points_as_spheres=True, lighting=False, name=kind, reset_camera=False, pickable=False)
         if res.refit or self.level_range is None:
             self._fit_level_range(res)
             self._sync_sliders(res.params)

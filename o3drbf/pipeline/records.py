@@ -311,7 +311,7 @@ class Reconstruction:
         Parameters
         ----------
         constraints : bool
-            Draw the surface (red) and exterior (blue) constraints over the mesh
+            Draw the surface (blue) and exterior (green) constraints over the mesh, in the colours of ``o3drbf view``
             (not the bounding-sphere ones, which would shrink the mesh in the frame).
         compare : dict of str to open3d.geometry.TriangleMesh, optional
             Other reconstructions of the same data, one panel each beside this one (linked cameras).
