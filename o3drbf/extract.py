@@ -18,7 +18,7 @@ from o3drbf.progress import progress_bar
 from o3drbf.validation import check_number
 
 __all__ = ["extract_mesh", "evaluate_grid", "refine_on_edges", "grid_for", "mesh_evaluator", "GRID_EVALUATION_MIN", "MESH_EPS",
-           "AUTO_RESOLUTION", "auto_resolution", "REFINE_MIN_GAP"]
+           "AUTO_RESOLUTION", "auto_resolution", "CORNER_GAP"]
 
 #: ``resolution="auto"`` (the default here and in ``o3drbf.DEFAULTS``, whose
 #: ``AUTO_SIZES`` holds these): marching-cubes cells per surface-constraint
@@ -462,10 +462,6 @@ def extract_mesh(
 #: left slivers that Open3D's self-intersection test flags, on a ball three
 #: cells in radius).
 _REFINE_GAP = 0.1
-#: ... and never nearer than this, wherever marching cubes put it: two vertices on edges that meet
-#: at a corner, both within ~1e-3 of it, make a needle triangle that Open3D's self-intersection
-#: test flags against its neighbour.
-REFINE_MIN_GAP = 0.01
 
 
 def refine_on_edges(func, verts, vals, origin, h: float, level: float = 0.0, steps: int = 3, first_node=None,
@@ -481,9 +477,8 @@ def refine_on_edges(func, verts, vals, origin, h: float, level: float = 0.0, ste
     vertex and step; three leave a ball 3.3 cells in radius within 1e-5
     cells, where straight lines leave it 0.03 cells inside).
     It never leaves its edge, nor comes closer to a corner than
-    ``_REFINE_GAP`` of the edge (unless marching cubes put it closer, and
-    then never closer than :data:`REFINE_MIN_GAP`): the triangles keep their
-    cells and the mesh its topology.
+    ``_REFINE_GAP`` of the edge (unless marching cubes put it closer): the
+    triangles keep their cells and the mesh its topology.
 
     Parameters
     ----------
@@ -537,8 +532,7 @@ def refine_on_edges(func, verts, vals, origin, h: float, level: float = 0.0, ste
     ta, tb = np.zeros(len(t)), np.ones(len(t))
     # Not nearer a corner than _REFINE_GAP of the edge (or than marching cubes put it): several vertices
     # pulled next to one corner make slivers that Open3D's self-intersection test flags.
-    lo = np.clip(t, REFINE_MIN_GAP, _REFINE_GAP)
-    hi = np.clip(t, 1.0 - _REFINE_GAP, 1.0 - REFINE_MIN_GAP)
+    lo, hi = np.minimum(t, _REFINE_GAP), np.maximum(t, 1.0 - _REFINE_GAP)
     kept_b = np.zeros(len(t), dtype=bool)
     grads = np.full((len(v), 3), np.nan) if gradient else None
     for step in range(int(steps)):
@@ -574,7 +568,7 @@ def refine_on_edges(func, verts, vals, origin, h: float, level: float = 0.0, ste
 #: fraction of an edge away from a grid corner (1e-3 still left near-degenerate
 #: pairs that Open3D's self-intersection test flags on the demo and the bunny;
 #: 3e-3 and 1e-2 left none; a vertex moves by at most 1e-2 of a cell).
-_CORNER_GAP = 1e-2
+CORNER_GAP = 1e-2
 
 
 def _keep_off_corners(d: np.ndarray) -> np.ndarray:
@@ -595,7 +589,7 @@ def _keep_off_corners(d: np.ndarray) -> np.ndarray:
     steps = np.concatenate(steps)
     if steps.size == 0:
         return d
-    eps = _CORNER_GAP * float(np.median(steps))
+    eps = CORNER_GAP * float(np.median(steps))
     out = d.copy()
     small = np.abs(out) < eps
     out[small] = np.where(out[small] > 0, eps, -eps)

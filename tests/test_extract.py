@@ -192,23 +192,3 @@ def test_vertices_are_moved_onto_the_surface_along_their_edges(refine):
     on_node = np.abs(idx - np.rint(idx)) < 1e-5  # float32 vertices
     assert (on_node.sum(axis=1) >= 2).all()
 
-
-def test_refined_vertices_keep_off_the_corners_of_their_edges():
-    """A root at 1e-3 of an edge from its corner (where marching cubes puts it) ends at REFINE_MIN_GAP,
-    one at 0.3 stays on the root, one at 0.05 stays there (nearer than _REFINE_GAP, as marching cubes put it)."""
-    from o3drbf.extract import REFINE_MIN_GAP, refine_on_edges
-
-    vals = np.ones((2, 2, 2))
-    roots = np.array([1e-3, 0.3, 0.05])
-    verts = np.array([[0.0, 0.0, r] for r in roots])  # edges from node (0, 0, 0) along z
-    out = []
-    for r, v in zip(roots, verts):
-        vals[0, 0, 0], vals[0, 0, 1] = -r, 1.0 - r  # f linear along the edge, zero at r
-
-        def func(x, gradient=False, r=r):
-            return x[:, 2] - r
-
-        out.append(refine_on_edges(func, v[None], vals, np.zeros(3), 1.0)[0, 2])
-    assert out[0] == pytest.approx(REFINE_MIN_GAP)
-    assert out[1] == pytest.approx(0.3, abs=1e-9)
-    assert out[2] == pytest.approx(0.05, abs=1e-9)

@@ -28,7 +28,7 @@ import time
 
 import numpy as np
 
-from o3drbf.extract import extraction_box, grid_for, refine_on_edges
+from o3drbf.extract import CORNER_GAP, extraction_box, grid_for, refine_on_edges
 from o3drbf.tiles.cluster import run_tasks, tile_client, worker_summary
 from o3drbf.validation import check_number
 
@@ -36,8 +36,6 @@ __all__ = ["extract_tiled", "lattice_for"]
 
 log = logging.getLogger("o3drbf")
 
-#: Smallest |f - level| kept at a node, as a fraction of a typical edge step.
-CORNER_GAP = 1e-3
 
 
 def lattice_for(surface, resolution: int | None = 128, voxel_size: float | None = None, bounds=None) -> dict:
