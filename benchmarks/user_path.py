@@ -25,7 +25,9 @@ kernel) and builds its isosurface at o3drbf's resolution.
 
 Usage::
 
-    python benchmarks/user_path.py [--quick | --large] [--record FILE.json] [--out DIR]
+    python benchmarks/user_path.py [--quick | --large] [--case TEXT] [--record FILE.json] [--out DIR]
+
+``--case scan`` runs only the cases whose name contains "scan" (the others are not generated).
 
 Prints the table (seconds, GB, o3drbf's time over each peer's), the per-stage table and
 the targets, with the load average and thread count; ``--record`` also writes them as
@@ -80,29 +82,41 @@ def timed(cmd: list[str], env=None) -> dict:
 # --------------------------------------------------------------------------------------
 # inputs
 # --------------------------------------------------------------------------------------
-def make_inputs(folder: Path, size: str) -> list[dict]:
-    """The cases for ``size`` in ("quick", "full", "large"), their files written into ``folder``."""
+def make_inputs(folder: Path, size: str, only: str | None = None) -> list[dict]:
+    """The cases for ``size`` in ("quick", "full", "large"), their files written into ``folder``.
+
+    ``only``: just the cases whose name contains it (case-insensitive); the others are not generated.
+    """
     from o3drbf.io.files import write_points
     from o3drbf.synthetic.shapes import Sphere, Torus
 
+    def wanted(name: str) -> bool:
+        return only is None or only.lower() in name.lower()
+
     cases = []
-    p, n = Sphere(1.0).sample(1000, seed=0)
-    write_points(folder / "sphere1k.ply", p, n)
-    cases.append({"name": "start-up: 1,000 points", "input": folder / "sphere1k.ply", "points": folder / "sphere1k.ply", "args": []})
-    p, n = Torus().sample(15000, seed=0)
-    write_points(folder / "torus15k.ply", p, n)
-    cases.append({"name": "torus 15k", "input": folder / "torus15k.ply", "points": folder / "torus15k.ply", "args": []})
-    scan, raw = make_scan(folder)
-    cases.append({"name": "scan 27k", "input": scan, "points": raw, "args": []})
+    if wanted("start-up: 1,000 points"):
+        p, n = Sphere(1.0).sample(1000, seed=0)
+        write_points(folder / "sphere1k.ply", p, n)
+        cases.append({"name": "start-up: 1,000 points", "input": folder / "sphere1k.ply", "points": folder / "sphere1k.ply", "args": []})
+    if wanted("torus 15k"):
+        p, n = Torus().sample(15000, seed=0)
+        write_points(folder / "torus15k.ply", p, n)
+        cases.append({"name": "torus 15k", "input": folder / "torus15k.ply", "points": folder / "torus15k.ply", "args": []})
+    if wanted("scan 27k"):
+        scan, raw = make_scan(folder)
+        cases.append({"name": "scan 27k", "input": scan, "points": raw, "args": []})
     sizes = {"quick": (), "full": ((90000, 30000), (300000, 100000)),
              "large": ((90000, 30000), (300000, 100000), (900000, 300000), (1000000, None))}[size]
     for total, count in sizes:
-        p, n = Torus().sample(total, seed=1)
         label = f"{total // 1000}k" if total < 1000000 else f"{total // 1000000}M"
+        args = ["--all-points"] if count is None else ["--surface-count", str(count)]
+        name = f"torus {label}, {' '.join(args)}"
+        if not wanted(name):
+            continue
+        p, n = Torus().sample(total, seed=1)
         path = folder / f"torus{label}.ply"
         write_points(path, p, n)
-        args = ["--all-points"] if count is None else ["--surface-count", str(count)]
-        cases.append({"name": f"torus {label}, {' '.join(args)}", "input": path, "points": path, "args": args})
+        cases.append({"name": name, "input": path, "points": path, "args": args})
     return cases
 
 
@@ -263,6 +277,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=None, help="folder for inputs and meshes (default: a temporary one)")
     ap.add_argument("--record", type=Path, default=None, help="also write the rows, tables and machine as JSON here")
     ap.add_argument("--no-peers", action="store_true", help="o3drbf only")
+    ap.add_argument("--case", default=None, metavar="TEXT",
+                    help="only the cases whose name contains TEXT (e.g. 'scan'); the others are not generated")
     ap.add_argument("--peer", nargs=4, metavar=("KIND", "POINTS", "ARG", "OUT"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.peer:
@@ -273,7 +289,10 @@ def main(argv=None) -> int:
     folder.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ)
     env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
-    cases = make_inputs(folder, "quick" if args.quick else "large" if args.large else "full")
+    cases = make_inputs(folder, "quick" if args.quick else "large" if args.large else "full", only=args.case)
+    if not cases:
+        print(f"user_path: no case's name contains {args.case!r}; see the list in --help's module text", file=sys.stderr)
+        return 2
     load0 = os.getloadavg()
     help_seconds = timed(o3drbf_command() + ["--help"], env=env)["seconds"]
     rows = []
