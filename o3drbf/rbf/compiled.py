@@ -28,7 +28,7 @@ try:  # numba is a dependency, but the library still works (slower) without it
 except ImportError:  # pragma: no cover
     HAVE_NUMBA = False
 
-__all__ = ["HAVE_NUMBA", "direct_sum", "direct_matrix", "supports", "check_sum_arrays", "table_sum", "supports_table", "KernelTable"]
+__all__ = ["HAVE_NUMBA", "direct_sum", "direct_matrix", "lower_single", "supports", "check_sum_arrays", "table_sum", "supports_table", "KernelTable"]
 
 # kernel codes
 _MULTIORDER, _GAUSSIAN, _THINPLATE = 0, 1, 2
@@ -169,6 +169,56 @@ if HAVE_NUMBA:
             _lower_column(code, p, x, out, t)
             if n - 1 - t != t:
                 _lower_column(code, p, x, out, n - 1 - t)
+
+
+if HAVE_NUMBA:
+
+    @numba.njit(cache=True, inline="always")
+    def _single_column(a, out, j):
+        d = a[j, j]
+        out[j, j] = np.float32(d)
+        acc = 0.0
+        for i in range(j + 1, a.shape[0]):
+            v = a[i, j]
+            out[i, j] = np.float32(v)
+            acc += v * v
+        return d * d + 2.0 * acc
+
+    @numba.njit(cache=True, parallel=True)
+    def _lower_single(a, out, squares):
+        n = a.shape[0]
+        half = (n + 1) // 2
+        for t in numba.prange(half):  # columns t and n - 1 - t in one task, as in _matrix_lower
+            squares[t] = _single_column(a, out, t)
+            u = n - 1 - t
+            if u != t:
+                squares[u] = _single_column(a, out, u)
+
+
+def lower_single(a: np.ndarray) -> tuple[np.ndarray, float]:
+    """The lower triangle of the symmetric ``a`` (square, Fortran order, float64) as float32, and ``a``'s Frobenius norm.
+
+    Only the lower triangle (diagonal included) of ``a`` is read, and only
+    that of the result written (either upper triangle may be uninitialised,
+    as :func:`direct_matrix` leaves it with ``lower=True``).
+
+    Returns
+    -------
+    single : (N, N) float32 ndarray, Fortran order
+    frobenius : float
+        ``||a||_F`` of the symmetric matrix (off-diagonal entries counted twice).
+    """
+    if a.ndim != 2 or a.shape[0] != a.shape[1] or a.dtype != np.float64 or not a.flags.f_contiguous:
+        raise ValueError(f"a must be a square Fortran-order float64 array, got {a.dtype} {a.shape}")
+    out = np.empty(a.shape, dtype=np.float32, order="F")
+    squares = np.zeros(a.shape[0])
+    if HAVE_NUMBA:
+        _lower_single(a, out, squares)
+    else:  # pragma: no cover
+        for j in range(a.shape[0]):
+            out[j:, j] = a[j:, j]
+            squares[j] = a[j, j] ** 2 + 2.0 * float(a[j + 1:, j] @ a[j + 1:, j])
+    return out, float(np.sqrt(squares.sum()))
 
 
 def check_sum_arrays(centres, weights, targets) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -159,8 +159,9 @@ def memory_limit_or_default(memory_limit: int | None = None) -> int:
 
 
 def dense_memory(n: int) -> int:
-    """Peak bytes of a dense solve of ``n`` constraints (the matrix, factored in place, plus slack)."""
-    return int(8 * (n + 4) ** 2 * 1.1 + 64 * n)
+    """Peak bytes of a dense solve of ``n`` constraints: the double-precision matrix, its single-precision
+    copy (factored; :class:`o3drbf.solvers.dense.DenseFactor`'s mixed precision) and slack."""
+    return int(12 * (n + 4) ** 2 * 1.1 + 64 * n)
 
 
 def gigabytes(x: float) -> str:

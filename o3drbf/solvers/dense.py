@@ -6,10 +6,11 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg as sla
 
+from o3drbf.rbf.compiled import lower_single
 from o3drbf.rbf.sums import kernel_matrix
 from o3drbf.solvers.base import dense_blas_threads
 
-__all__ = ["solve_dense", "DenseFactor", "DENSE_MAX"]
+__all__ = ["solve_dense", "DenseFactor", "DENSE_MAX", "MIXED_MIN", "REFINE_RTOL", "REFINE_STEPS"]
 
 #: Largest dense solve o3drbf runs.  The OpenBLAS shipped with numpy/scipy
 #: wheels segfaults in a two-thread Cholesky of 16,000+ unknowns on this
@@ -18,6 +19,15 @@ __all__ = ["solve_dense", "DenseFactor", "DENSE_MAX"]
 DENSE_MAX = 12_000
 #: Columns of the inverse a DenseFactor keeps for later refits (each N floats).
 MAX_KEPT_COLUMNS = 1024
+#: From this many constraints on, ``DenseFactor(precision="auto")`` factors in single precision and refines
+#: every solve to double precision (``"mixed"``); below it the double factorization costs little anyway.
+MIXED_MIN = 2000
+#: A mixed-precision solve is refined until every column's normwise backward error
+#: ``||b - A x|| / (||A||_F ||x|| + ||b||)`` is at most this (a few times double precision's rounding) ...
+REFINE_RTOL = 1e-15
+#: ... in at most this many corrections; a solve that does not get there (or stops shrinking its residual)
+#: refactors in double precision.
+REFINE_STEPS = 8
 
 
 class DenseFactor:
@@ -47,6 +57,21 @@ class DenseFactor:
         The smoothing factored, ``lambda_0 >= 0``.
     q : (N, M) ndarray
         Polynomial basis at the centres.
+    precision : {"auto", "mixed", "double"}
+        "double": LAPACK's double-precision Cholesky, in place.  "mixed":
+        the matrix is kept in double precision and a single-precision copy
+        is factored (about half the time); every solve is then refined
+        (iterative refinement: residual ``b - A x`` in double precision,
+        correction from the single factor) to a backward error of
+        ``REFINE_RTOL``, and refactored in double precision if it does not
+        get there in ``REFINE_STEPS`` corrections.  Half as much memory
+        again as "double".  "auto": "mixed" from ``MIXED_MIN`` constraints.
+
+    Attributes
+    ----------
+    precision : str
+        "mixed" or "double": what the solves use now (a mixed factor that
+        failed to refine is "double" from then on).
 
     Raises
     ------
@@ -54,12 +79,28 @@ class DenseFactor:
         The matrix is not numerically positive definite.
     """
 
-    def __init__(self, kernel, centres, lam, q):
+    def __init__(self, kernel, centres, lam, q, precision: str = "auto"):
+        if precision not in ("auto", "mixed", "double"):
+            raise ValueError(f"precision must be 'auto', 'mixed' or 'double', got {precision!r}")
         n = len(centres)
         a = kernel_matrix(kernel, centres, lower=True)  # the factorization reads the lower triangle only
         a[np.diag_indices(n)] += lam
-        with dense_blas_threads():
-            self.factor = sla.cho_factor(a, lower=True, overwrite_a=True, check_finite=False)
+        self.precision = ("mixed" if n >= MIXED_MIN else "double") if precision == "auto" else precision
+        self.matrix = None  # mixed: A (lower triangle, double) for the residuals of the refinement
+        self.single = None  # mixed: the single-precision Cholesky factor
+        self.norm = float("nan")  # mixed: ||A||_F
+        self.factor = None  # double: scipy's (factor, lower)
+        if self.precision == "mixed":
+            with dense_blas_threads():
+                single, self.norm = lower_single(a)
+                single, info = sla.lapack.spotrf(single, lower=1, overwrite_a=1, clean=0)
+            if info == 0:
+                self.matrix, self.single = a, single
+            else:  # not positive definite in single precision: factor in double
+                self.precision = "double"
+        if self.precision == "double":
+            with dense_blas_threads():
+                self.factor = sla.cho_factor(a, lower=True, overwrite_a=True, check_finite=False)
         self.lam0 = np.array(lam, dtype=float)
         self.q = q
         # Back-substitutions that do not depend on the smoothing, kept across refits:
@@ -89,7 +130,7 @@ class DenseFactor:
         n, m = q.shape
         y = np.asarray(y, dtype=float)
         if self._base is None or not np.array_equal(self._base[0], y):
-            self._base = (y.copy(), sla.cho_solve(self.factor, np.column_stack([y, q]), check_finite=False))
+            self._base = (y.copy(), self.solve_matrix(np.column_stack([y, q])))
         x = self._base[1].copy()
         changed = np.zeros(0, dtype=int) if lam is None else np.flatnonzero(np.asarray(lam) != self.lam0)
         if len(changed):
@@ -116,7 +157,7 @@ class DenseFactor:
         if new:
             e = np.zeros((n, len(new)))
             e[new, np.arange(len(new))] = 1.0
-            z = sla.cho_solve(self.factor, e, check_finite=False)
+            z = self.solve_matrix(e)
             if len(self._columns) + len(new) > MAX_KEPT_COLUMNS:
                 self._columns.clear()
             fresh = dict(zip(new, z.T))
@@ -126,18 +167,62 @@ class DenseFactor:
             fresh = {}
         return np.column_stack([self._columns[int(j)] if int(j) in self._columns else fresh[int(j)] for j in idx])
 
+    def solve_matrix(self, b) -> np.ndarray:
+        """``A^{-1} b`` for ``A = Phi + diag(lambda_0)`` and ``b`` of shape (N,) or (N, K), in double precision.
+
+        Mixed precision: refined from the single factor (see the class) until
+        every column's backward error ``||b - A x|| / (||A||_F ||x|| + ||b||)``
+        is at most ``REFINE_RTOL``; a solve that does not get there in
+        ``REFINE_STEPS`` corrections, or stops shrinking it, refactors in
+        double precision and solves again.
+        """
+        b = np.asarray(b, dtype=float)
+        if self.single is None:
+            return sla.cho_solve(self.factor, b, check_finite=False)
+        flat = b.ndim == 1
+        b2 = b.reshape(len(b), -1)
+        bnorm = np.linalg.norm(b2, axis=0)
+        with dense_blas_threads():
+            x = sla.lapack.spotrs(self.single, b2.astype(np.float32), lower=1)[0].astype(float)
+            previous = np.inf
+            for _ in range(REFINE_STEPS + 1):
+                r = b2 - sla.blas.dsymm(1.0, self.matrix, x, side=0, lower=1)
+                scale = np.maximum(self.norm * np.linalg.norm(x, axis=0) + bnorm, np.finfo(float).tiny)
+                res = float((np.linalg.norm(r, axis=0) / scale).max())
+                if res <= REFINE_RTOL:
+                    return x.ravel() if flat else x
+                if not res < 0.5 * previous:
+                    break
+                previous = res
+                x += sla.lapack.spotrs(self.single, r.astype(np.float32), lower=1)[0]
+        self.double()
+        return self.solve_matrix(b)
+
+    def double(self) -> None:
+        """Drop the single-precision factor and factor ``A`` in double precision (in place); from now on "double"."""
+        if self.single is None:
+            return
+        a, self.matrix, self.single = self.matrix, None, None
+        self.precision = "double"
+        with dense_blas_threads():
+            self.factor = sla.cho_factor(a, lower=True, overwrite_a=True, check_finite=False)
+
     def residual(self, y, lam, w, p) -> float:
         """Relative residual of ``(w, p)`` (all N weights) in the system with smoothing ``lam`` (``inf``: left out),
         ``|| [Phi w + lambda w + Q p - y ; Q^T w] || / ||y||`` over the kept constraints.
 
-        ``Phi w`` is ``L (L^T w) - lambda_0 w`` with the kept Cholesky factor ``L``
-        (two triangular products, O(N^2) without evaluating the kernel).
+        ``Phi w`` is ``A w - lambda_0 w``: ``A w`` from the kept double-precision
+        matrix (mixed precision) or as ``L (L^T w)`` from the Cholesky factor
+        ``L`` (double): O(N^2) products, no kernel evaluated.
         """
-        c, _ = self.factor
         lam = np.asarray(lam, dtype=float)
         keep = np.isfinite(lam)
         w = np.where(keep, w, 0.0)
-        a0w = sla.blas.dtrmv(c, sla.blas.dtrmv(c, w, lower=1, trans=1), lower=1)
+        if self.single is not None:
+            a0w = sla.blas.dsymv(1.0, self.matrix, w, lower=1)
+        else:
+            c, _ = self.factor
+            a0w = sla.blas.dtrmv(c, sla.blas.dtrmv(c, w, lower=1, trans=1), lower=1)
         r1 = (a0w + (np.where(keep, lam, 0.0) - self.lam0) * w + self.q @ p - y)[keep]
         r2 = self.q.T @ w
         return float(np.sqrt(r1 @ r1 + r2 @ r2) / max(float(np.linalg.norm(np.asarray(y)[keep])), np.finfo(float).tiny))
