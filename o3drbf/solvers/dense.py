@@ -20,7 +20,8 @@ DENSE_MAX = 12_000
 #: Columns of the inverse a DenseFactor keeps for later refits (each N floats).
 MAX_KEPT_COLUMNS = 1024
 #: From this many constraints on, ``DenseFactor(precision="auto")`` factors in single precision and refines
-#: every solve to double precision (``"mixed"``); below it the double factorization costs little anyway.
+#: every solve to double precision (``"mixed"``); below it the double factorization is kept
+#: (docs/data/design-measurements.md, "Mixed-precision dense factorization").
 MIXED_MIN = 2000
 #: A mixed-precision solve is refined until every column's normwise backward error
 #: ``||b - A x|| / (||A||_F ||x|| + ||b||)`` is at most this (a few times double precision's rounding) ...
@@ -60,7 +61,8 @@ class DenseFactor:
     precision : {"auto", "mixed", "double"}
         "double": LAPACK's double-precision Cholesky, in place.  "mixed":
         the matrix is kept in double precision and a single-precision copy
-        is factored (about half the time); every solve is then refined
+        is factored (single-precision arithmetic: twice the floating-point
+        rate of double); every solve is then refined
         (iterative refinement: residual ``b - A x`` in double precision,
         correction from the single factor) to a backward error of
         ``REFINE_RTOL``, and refactored in double precision if it does not
