@@ -344,7 +344,7 @@ TILE_DEFAULTS = {
     "base_points_per_constraint": 20,
     # A tile's stages see at most this many of its support's points per surface constraint (a seeded uniform
     # subsample): denser points would not change where its surface_count_per_tile constraints go.
-    "support_points_per_constraint": 40,
+    "support_points_per_constraint": 30,
     # tiles="auto" adds no tiles once the surface constraints would be closer than this many marching-cubes
     # cells: ceil(N / points_per_tile), at most the voxels of that size the surface crosses / surface_count_per_tile.
     "constraint_cells": 0.75,

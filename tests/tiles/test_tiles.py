@@ -8,7 +8,7 @@ import pytest
 from o3drbf.prep.sampling import mean_spacing
 from o3drbf.synthetic.shapes import Torus
 from o3drbf.tiles.extract import extract_tiled
-from o3drbf.tiles.fit import fit_tiled, surface_tile_cap, tile_count
+from o3drbf.tiles.fit import TILE_DEFAULTS, fit_tiled, surface_tile_cap, tile_count
 from o3drbf.tiles.partition import Partition, kd_split, wendland, wendland_derivative
 from o3drbf.tiles.surface import TiledSurface
 
@@ -123,7 +123,7 @@ def test_auto_tiles_stop_at_what_the_mesh_shows_and_dense_tiles_are_subsampled()
     m = s.metadata
     uncapped = tile_count(len(pts), "auto", 300)
     assert uncapped == 40 and 1 <= m["tile_count"] < uncapped
-    limit = 40 * 25
+    limit = TILE_DEFAULTS["support_points_per_constraint"] * 25
     assert all(t["used"] == min(t["points"], limit) for t in m["tiles"]) and m["subsampled_tiles"] >= 1
     assert m["kept"] == len(pts) and m["outliers"] == 0
     assert np.abs(s(pts)).mean() < 0.01
