@@ -335,6 +335,33 @@ def test_grid_looser_products_and_subset(problem3k, dense3k):
     assert np.linalg.norm(apply(z, 1e-2) - ref) / np.linalg.norm(ref) < 1e-3
 
 
+@pytest.mark.parametrize("eps", [1e-3, 1e-7])
+def test_near_field_summed_on_the_fly_matches_the_stored_matrix_and_dense(problem3k, dense3k, eps):
+    """A grid sum whose near field is summed on the fly (no stored matrix, as at a million
+    centres) gives the stored-matrix product to rounding, and so the dense one to eps; its looser
+    companions and its coarse-to-fine update Phi[:, C] z_C too (with far centres summed directly)."""
+    kernel = KERNELS["multiorder-10"]
+    c = np.vstack([problem3k[0], [[4.0, 4.0, 4.0], [-4.0, 3.0, 1.0]]])  # two far centres (outside the grid)
+    a = np.vstack([np.column_stack([dense3k("multiorder-10"), kernel_matrix(kernel, problem3k[0], c[-2:])]),
+                   kernel_matrix(kernel, c[-2:], c)])
+    stored, fly = fast.GridSum(kernel, c, eps=eps, store=True), fast.GridSum(kernel, c, eps=eps, store=False)
+    assert fly.store is False and fly.info["near_field"] == "summed on the fly" and len(fly.outside) == 2
+    w = np.random.default_rng(21).normal(size=len(c))
+    ref = a @ w
+    for e in (None, 1e-3):
+        got, want = fly.matvec(w, eps=e), stored.matvec(w, eps=e)
+        assert np.linalg.norm(got - want) / np.linalg.norm(want) < 1e-13
+        assert np.linalg.norm(got - ref) / np.linalg.norm(ref) < max(eps, e or 0)
+    assert fly._near_m is None and all(t._near_m is None for t in fly.__dict__.get("_tiers", {}).values())
+    subset = np.r_[np.random.default_rng(22).choice(len(c) - 2, 300, replace=False), len(c) - 1]
+    z = np.random.default_rng(23).normal(size=len(subset))
+    ref = a[:, subset] @ z
+    for e in (None, 1e-2):
+        got, want = fly.from_subset(subset)(z, e), stored.from_subset(subset)(z, e)
+        assert np.linalg.norm(got - want) / np.linalg.norm(want) < 1e-13
+        assert np.linalg.norm(got - ref) / np.linalg.norm(ref) < max(eps, 1e-3 if e else 0)
+
+
 def test_grid_duplicates_and_targets_outside_the_centres_box():
     rng = np.random.default_rng(17)
     c = np.vstack([rng.uniform(-0.5, 0.5, (400, 3)), np.zeros((2, 3))])

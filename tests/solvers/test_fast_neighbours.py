@@ -53,3 +53,17 @@ def test_sums_and_gradients_match_the_brute_force_pair_sums(cloud):
     only = np.full(len(targets), 2.0)
     CellList(pts, radius).add_sum(targets, w, tab, dtab, dr, only)  # values alone: the same values
     assert np.array_equal(only, out)
+
+
+@pytest.mark.parametrize("chunks", [1, 3, 16])
+def test_self_sum_evaluates_each_pair_once_and_matches_the_brute_force_sum(cloud, chunks):
+    """The symmetric near sum at the points themselves (the products' near field summed on the fly)
+    against every pair within the radius, duplicated points and the self pair included."""
+    pts = np.vstack([cloud[0], cloud[0][:20]])  # 20 points twice: pairs at distance 0
+    radius = 0.3
+    tab, _, dr = _table(radius)
+    w = np.random.default_rng(6).normal(size=len(pts))
+    d = cdist(pts, pts)
+    want = (np.where(d <= radius, np.cos(d), 0.0) * w).sum(axis=1)
+    got = CellList(pts, radius).self_sum(w, tab, dr, chunks=chunks)
+    assert np.abs(got - want).max() < 1e-6 * np.abs(w).sum()

@@ -15,11 +15,12 @@ from o3drbf.rbf.kernels import Kernel, MultiOrder
 from o3drbf.rbf.sums import kernel_sum
 from o3drbf.solvers.base import memory_limit_or_default
 from o3drbf.solvers.fast.fmm import FastSum
-from o3drbf.solvers.fast.neighbours import HAVE_GRID, CellList, default_neighbours, neighbour_radius, njit, prange, product_neighbours
+from o3drbf.solvers.fast.neighbours import (HAVE_GRID, CellList, default_neighbours, neighbour_radius, njit, prange, product_neighbours,
+                                            store_near)
 from o3drbf.solvers.fast.tolerance import DEFAULT_EPS, clip_eps
 
 __all__ = ["GridSum", "Mesh", "fast_operator", "grid_bytes", "grid_budget", "outside_centres", "split_design",
-           "near_table", "long_part", "GRID_BUDGET", "DIRECT_PAIRS"]
+           "near_table", "near_entries", "long_part", "GRID_BUDGET", "DIRECT_PAIRS"]
 
 
 def _components(kernel):
@@ -157,6 +158,14 @@ def near_table(kernel, rc: float, sigma: float, eps: float):
     return cut, phis, dr, dtab
 
 
+def near_entries(centres, tree: cKDTree, cut: float, n_core: int) -> float:
+    """Entries of the near-field matrix of cut-off ``cut`` over ``n_core`` centres, from a seeded
+    sample of 1,000 of ``centres`` (``tree`` is theirs)."""
+    n = len(centres)
+    sample = centres[np.random.default_rng(1).choice(n, min(n, 1000), replace=False)]
+    return float(np.mean(tree.query_ball_point(sample, cut, return_length=True))) * n_core
+
+
 #: Kernel evaluations per product allowed for the far centres a grid leaves out (summed directly).
 DIRECT_PAIRS = 50_000_000
 
@@ -168,7 +177,16 @@ def grid_bytes(lo, hi, h: float, half: int) -> int:
 
 
 class Mesh:
-    """A grid of spacing h over a box, with the FFT of the grid kernel K (zero-padded: aperiodic)."""
+    """A grid of spacing h over a box, with the FFT of the grid kernel K (zero-padded: aperiodic).
+
+    The convolution is done axis by axis (z, y, x) so that the zero-padded
+    array of the aperiodic convolution never exists whole: the grid is
+    padded along one axis at a time, the last axis in slabs, and the
+    output cropped back axis by axis; K is even along every axis, so its
+    transform is real and even and one octant of it is kept."""
+
+    #: Bytes of work arrays a slab of the last transform may take.
+    SLAB_BYTES = 64 * 2**20
 
     def __init__(self, lo, hi, h, s, half, ktable, dtype=np.float64):
         self.h, self.s, self.half, self.dtype = h, s, half, dtype
@@ -176,41 +194,67 @@ class Mesh:
         self.origin = np.asarray(lo, float) - pad
         self.shape = tuple(int(math.ceil((hi[i] - lo[i] + 2 * pad) / h)) + 1 for i in range(3))
         self.fshape = tuple(_sfft.next_fast_len(2 * m - 1, real=True) for m in self.shape)
-        idx = [np.minimum(np.arange(p), p - np.arange(p)).astype(np.int32) for p in self.fshape]
-        n2 = (idx[0][:, None, None] ** 2 + idx[1][None, :, None] ** 2) + idx[2][None, None, :] ** 2
-        kgrid = ktable(n2)  # K at h * sqrt(n2)
-        del n2
-        kgrid *= h**3
-        # K is even along every axis (K[i] = K[p - i]), so its transform is real: keep the real part only
-        # (half the memory of the complex spectrum).
-        spectrum = _sfft.rfftn(kgrid.astype(dtype, copy=False), workers=_fft_workers(), overwrite_x=True)
-        del kgrid
-        self.khat = np.ascontiguousarray(spectrum.real)
-        del spectrum
+        fx, fy, fz = self.fshape
+        half_len = [p // 2 + 1 for p in self.fshape]
+        iy = np.minimum(np.arange(fy), fy - np.arange(fy)).astype(np.int64)
+        iz = np.minimum(np.arange(fz), fz - np.arange(fz)).astype(np.int64)
+        n2yz = iy[:, None] ** 2 + iz[None, :] ** 2
+        vals = ktable(np.arange((fx // 2) ** 2 + int(n2yz.max()) + 1)) * h**3  # K at h * sqrt(n2)
+        # One x-slab of K at a time: its (real, even) transform along z and y, first octant kept.
+        part = np.empty(half_len, dtype=np.float64)
+        for i in range(half_len[0]):
+            t = _sfft.rfft(vals[n2yz + i * i], axis=1, workers=_fft_workers()).real
+            part[i] = _sfft.rfft(t, axis=0, workers=_fft_workers()).real
+        del n2yz, vals
+        # Along x: the even sequence of the slabs (K[i] = K[fx - i]), in column blocks.
+        mirror = np.minimum(np.arange(fx), fx - np.arange(fx))
+        khat = np.empty(half_len, dtype=dtype)
+        step = max(1, int(self.SLAB_BYTES // (16 * fx * half_len[2])))
+        for j in range(0, half_len[1], step):
+            col = part[mirror, j : j + step]
+            khat[:, j : j + step] = _sfft.rfft(col, axis=0, workers=_fft_workers()).real
+        del part
+        self.khat = khat
+        self._mx = np.minimum(np.arange(fx), fx - np.arange(fx))
+        self._my = np.minimum(np.arange(fy), fy - np.arange(fy))
 
     @staticmethod
     def nbytes(lo, hi, h, half, single: bool = False, part: str = "all") -> int:
         """Bytes of a grid's kernel transform plus the work arrays of one potential (``single``: float32 FFTs).
 
-        ``part``: "all", "kept" (the real kernel transform, kept while the grid lives: 4 bytes a
-        padded node, 2 in single precision) or "work" (the padded grid, its transform and the
-        inverse of one potential, freed after it)."""
+        ``part``: "all", "kept" (one octant of the real kernel transform, kept while the grid lives:
+        1 byte a zero-padded node, 0.5 in single precision) or "work" (the grid padded along z
+        and y and its transform, freed after one potential: 7 bytes a zero-padded node, 3.5 in
+        single precision)."""
         pad = (half + 2) * h
         shape = [math.ceil((hi[i] - lo[i] + 2 * pad) / h) + 1 for i in range(3)]
-        kept, work = (2, 10) if single else (4, 20)
+        kept, work = (0.5, 3.5) if single else (1.0, 7.0)
         per = {"all": kept + work, "kept": kept, "work": work}[part]
         return int(per * np.prod([2.0 * m for m in shape]))
 
     def potential(self, pts, w):
-        # Spread straight into the zero-padded array the FFT takes (no padded copy), transform in place.
-        grid = np.zeros(self.fshape, dtype=self.dtype)
+        """The far-field potential on the (unpadded) grid of the weights ``w`` at ``pts``."""
+        mx, my, mz = self.shape
+        fx, fy, fz = self.fshape
+        workers = _fft_workers()
+        grid = np.zeros(self.shape, dtype=self.dtype)
         _spread(pts, w, self.origin, self.h, self.s, self.half, grid)
-        g = _sfft.rfftn(grid, workers=_fft_workers(), overwrite_x=True)
+        a = _sfft.rfft(grid, n=fz, axis=2, workers=workers)
         del grid
-        g *= self.khat
-        u = _sfft.irfftn(g, s=self.fshape, workers=_fft_workers(), overwrite_x=True)
-        del g
-        out = np.ascontiguousarray(u[: self.shape[0], : self.shape[1], : self.shape[2]], dtype=float)
+        b = _sfft.fft(a, n=fy, axis=1, workers=workers, overwrite_x=True)
+        del a
+        # Along x, slab by slab of y: pad, transform, multiply by K's transform, back, crop.
+        step = max(1, int(self.SLAB_BYTES // (b.itemsize * fx * b.shape[2])))
+        for j in range(0, fy, step):
+            blk = _sfft.fft(b[:, j : j + step], n=fx, axis=0, workers=workers)
+            blk *= self.khat[np.ix_(self._mx, self._my[j : j + step])]
+            b[:, j : j + step] = _sfft.ifft(blk, axis=0, workers=workers, overwrite_x=True)[:mx]
+            del blk
+        c = np.ascontiguousarray(_sfft.ifft(b, axis=1, workers=workers, overwrite_x=True)[:, :my])
+        del b
+        u = _sfft.irfft(c, n=fz, axis=2, workers=workers)
+        del c
+        out = np.ascontiguousarray(u[:, :, :mz], dtype=float)
         del u
         out *= self.h**3
         return out
@@ -275,6 +319,11 @@ class GridSum:
     radius : float, optional
         The near-field radius itself (instead of ``neighbours``): the looser
         companions take one that keeps their grid no finer than this one's.
+    store : bool, optional
+        Keep the near field of the products as a sparse matrix (fast
+        products) or sum it afresh at every product by the cell list (no
+        memory); default :func:`~o3drbf.solvers.fast.neighbours.store_near`
+        of its estimated size.  The looser companions follow this choice.
 
     Raises
     ------
@@ -285,7 +334,8 @@ class GridSum:
     """
 
     def __init__(self, kernel: Kernel, centres, eps: float = DEFAULT_EPS, neighbours: int | None = None,
-                 budget: int | None = None, tree: cKDTree | None = None, outside=None, radius: float | None = None):
+                 budget: int | None = None, tree: cKDTree | None = None, outside=None, radius: float | None = None,
+                 store: bool | None = None):
         if not HAVE_GRID:
             raise ValueError("the grid backend needs numba, which is not installed")
         if not isinstance(kernel, MultiOrder) or kernel.coefficients is None:
@@ -321,6 +371,8 @@ class GridSum:
                               f"(budget {self.budget / 2**30:.1f} GB)")
         # Near part: phi_S = phi - phi_L on a table, cut where |phi_S| < eps phi(0).
         self.rc, self.tab, self.dr, self.dtab = near_table(kernel, rc, sigma, eps)
+        self.store = store_near(near_entries(self.centres, self.tree, self.rc, len(self._cc)), self.budget) if store is None \
+            else bool(store)
         self._meshes = []
         self.mesh = self._mesh(lo, hi)
         self.cells = CellList(self._cc, self.rc)
@@ -332,6 +384,7 @@ class GridSum:
                      "near_radius": self.rc, "sigma": sigma, "h": h, "grid": self.mesh.shape,
                      "fft": self.mesh.fshape, "stencil": 2 * half + 1, "grid_bytes": need,
                      "grid_bytes_all_centres": full, "outside": len(self.outside),
+                     "near_field": "stored" if self.store else "summed on the fly",
                      "setup_seconds": time.perf_counter() - t0}
 
     def _ktable(self, n2):
@@ -376,6 +429,19 @@ class GridSum:
             self.info["near_nnz"] = int(self._near_m.nnz)
         return self._near_m
 
+    def _add_near(self, wc, outc, cells=None):
+        """``outc += near @ wc`` (core centres): the stored matrix, or the cell-list sum from ``cells``
+        (default all core centres; ``wc`` in their order) at every core centre."""
+        if cells is None and self.store:
+            outc += self.near @ wc
+            return
+        if cells is None:  # sources = targets: each pair once
+            outc += self.cells.self_sum(wc, self.tab, self.dr)
+            return
+        part = np.zeros(len(self._cc))
+        cells.add_sum(self.cells.sorted, wc, self.tab, self.dtab, self.dr, part)  # targets in cell order: cache-friendly
+        outc[self.cells.order] += part
+
     def _tier(self, eps):
         """The loosest operator at least as accurate as ``eps``: this one, or a cached
         looser companion (tolerance 1e-4 or 1e-3, :meth:`tier_radius`: a grid no finer,
@@ -387,7 +453,7 @@ class GridSum:
                 tiers = self.__dict__.setdefault("_tiers", {})
                 if tol not in tiers:
                     tiers[tol] = GridSum(self.kernel, self.centres, eps=tol, radius=self.tier_radius(tol),
-                                         tree=self.tree, outside=self.outside, budget=self._fixed_budget)
+                                         tree=self.tree, outside=self.outside, budget=self._fixed_budget, store=self.store)
                 return tiers[tol]
         return self
 
@@ -408,7 +474,7 @@ class GridSum:
         u = self.mesh.potential(self._sorted, np.ascontiguousarray(wc[p]))
         outc = np.empty(len(self._cc))
         outc[p] = self.mesh.gather(u, self._sorted, False)
-        outc += self.near @ wc
+        self._add_near(wc, outc)
         if self._core is None:
             return outc
         # The far centres: summed directly (few of them), both ways.
@@ -534,14 +600,18 @@ class GridSum:
             if op not in cache:
                 key = np.floor((op._cc[csub] - op.mesh.origin) / (4 * op.h)).astype(np.int64)
                 pos = np.lexsort((key[:, 2], key[:, 1], key[:, 0]))
-                cache[op] = (np.ascontiguousarray(op._cc[csub[pos]]), pos, op.near[:, csub].tocsr())
+                cols = op.near[:, csub].tocsr() if op.store else CellList(op._cc[csub], op.rc)
+                cache[op] = (np.ascontiguousarray(op._cc[csub[pos]]), pos, cols)
             pts, pos, cols = cache[op]
             wc = w if cmask is None else w[cmask]
             outc = np.empty(len(op._cc))
             if len(csub):
                 u = op.mesh.potential(pts, np.ascontiguousarray(wc[pos]))
                 outc[op._perm] = op.mesh.gather(u, op._sorted, False)
-                outc += cols @ wc
+                if op.store:
+                    outc += cols @ wc
+                else:
+                    op._add_near(wc, outc, cells=cols)
             else:
                 outc[:] = 0.0
             if self._core is None:

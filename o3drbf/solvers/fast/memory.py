@@ -9,8 +9,9 @@ from scipy.spatial import cKDTree
 
 from o3drbf.rbf.kernels import MultiOrder
 from o3drbf.solvers.base import MemoryRefusal, memory_limit_or_default
-from o3drbf.solvers.fast.grid import Mesh, near_table, outside_centres, split_design
-from o3drbf.solvers.fast.neighbours import HAVE_GRID, NNZ_BYTES, default_neighbours, neighbour_radius, product_neighbours
+from o3drbf.solvers.fast.grid import Mesh, near_entries, near_table, outside_centres, split_design
+from o3drbf.solvers.fast.neighbours import (HAVE_GRID, NNZ_BYTES, default_neighbours, neighbour_radius, product_neighbours,
+                                            store_near)
 from o3drbf.solvers.fast.tolerance import DEFAULT_EPS, clip_eps, product_tolerance
 
 __all__ = ["fast_memory", "grid_plan", "memory_plan", "check_memory", "fitting_fraction"]
@@ -19,6 +20,8 @@ __all__ = ["fast_memory", "grid_plan", "memory_plan", "check_memory", "fitting_f
 _FMM_BYTES_PER_POINT = 8_000
 #: Bytes per centre of the kd-tree, the sorted copies and the index arrays every product keeps.
 _PER_CENTRE_BYTES = 200
+#: Bytes per centre of the output rows of a near field summed on the fly (a row per block of cells).
+_ON_THE_FLY_BYTES = 8 * 8
 
 
 def fast_memory(n: int, restart: int = 50, eps: float = 1e-6) -> int:
@@ -48,7 +51,8 @@ def _core_box(centres, tree, rc, outside=None):
 
 
 def grid_plan(kernel, centres, tree, eps: float, neighbours: int | None = None, radius: float | None = None,
-              outside=None, box=None, near: bool = True, memo: dict | None = None) -> dict:
+              outside=None, box=None, near: bool = True, memo: dict | None = None, store: bool | None = None,
+              limit: int | None = None) -> dict:
     """What a :class:`GridSum` with these arguments would take, without building it.
 
     Parameters
@@ -62,8 +66,13 @@ def grid_plan(kernel, centres, tree, eps: float, neighbours: int | None = None, 
     box : (2, 3) array_like, optional
         A box the grid must cover too (:meth:`GridSum.cover`).
     near : bool
-        Count the stored near-field matrix (products at the centres build it;
-        evaluation at targets does not).
+        Count the near field of products at the centres (evaluation at
+        targets has none).
+    store : bool, optional
+        Whether that near field is stored (as :class:`GridSum`'s ``store``;
+        default :func:`~o3drbf.solvers.fast.neighbours.store_near` with ``limit``).
+    limit : int, optional
+        The memory limit of that choice.
     memo : dict, optional
         Neighbour radii already found on this tree, by neighbour count (filled in).
 
@@ -71,8 +80,10 @@ def grid_plan(kernel, centres, tree, eps: float, neighbours: int | None = None, 
     -------
     dict
         ``grid`` (the kernel transform, kept), ``work`` (the transforms of
-        one product, freed after it), ``near`` (sparse matrix), ``potential``
-        (one grid potential), bytes; ``h``, ``radius`` (design), ``outside``.
+        one product, and the rows of a near field summed on the fly, freed
+        after it), ``near`` (sparse matrix; 0 when summed on the fly),
+        ``potential`` (one grid potential), bytes; ``h``, ``radius``
+        (design), ``outside``, ``store``.
     """
     n = len(centres)
     e = clip_eps(eps)
@@ -91,16 +102,19 @@ def grid_plan(kernel, centres, tree, eps: float, neighbours: int | None = None, 
     work = Mesh.nbytes(lo, hi, h, half, e >= 1e-4, "work")
     pad = (half + 2) * h
     cells = float(np.prod([math.ceil((hi[i] - lo[i] + 2 * pad) / h) + 1 for i in range(3)]))
-    nnz = 0.0
+    nnz, near_bytes = 0.0, 0
     if near:
-        cut = near_table(kernel, rc, sigma, e / 10)[0]
-        sample = centres[np.random.default_rng(1).choice(n, min(n, 1000), replace=False)]
-        nnz = float(np.mean(tree.query_ball_point(sample, cut, return_length=True))) * n_core
-    return {"grid": int(grid), "work": int(work), "near": int(NNZ_BYTES * nnz + 8 * n_core), "potential": int(8 * cells),
-            "h": h, "radius": rc, "outside": outside}
+        nnz = near_entries(centres, tree, near_table(kernel, rc, sigma, e / 10)[0], n_core)
+        store = store_near(nnz, limit) if store is None else bool(store)
+        if store:
+            near_bytes = int(NNZ_BYTES * nnz + 8 * n_core)
+        else:
+            work += _ON_THE_FLY_BYTES * n_core
+    return {"grid": int(grid), "work": int(work), "near": near_bytes, "potential": int(8 * cells),
+            "h": h, "radius": rc, "outside": outside, "store": bool(near and store)}
 
 
-def _twolevel_plan(kernel, centres, tree, lam_count, coarse_update_nnz, options=None) -> int:
+def _twolevel_plan(kernel, centres, tree, lam_count, coarse_update_nnz, options=None, limit=None) -> int:
     """Bytes of a :class:`TwoLevel` on these centres with its default options (``options`` overrides)."""
     from dataclasses import asdict
 
@@ -119,8 +133,8 @@ def _twolevel_plan(kernel, centres, tree, lam_count, coarse_update_nnz, options=
     sub_idx = np.sort(np.random.default_rng(2).choice(n, mc, replace=False))
     sub = centres[sub_idx]
     sub_tree = cKDTree(sub)
-    g = grid_plan(kernel, sub, sub_tree, max(o["nested_eps"], 1e-8), neighbours=product_neighbours(mc))
-    inner = _twolevel_plan(kernel, sub, sub_tree, mc, g["near"] / NNZ_BYTES, o)
+    g = grid_plan(kernel, sub, sub_tree, max(o["nested_eps"], 1e-8), neighbours=product_neighbours(mc), limit=limit)
+    inner = _twolevel_plan(kernel, sub, sub_tree, mc, g["near"] / NNZ_BYTES, o, limit)
     krylov = 2 * (o["nested"] + 2) * mc * 8
     return int(total + g["grid"] + g["near"] + inner + krylov + _PER_CENTRE_BYTES * mc)  # (its work: below the outer's)
 
@@ -176,7 +190,7 @@ def memory_plan(kernel, centres, rtol: float = 1e-6, eps: float | None = None, r
     tree = cKDTree(centres)
     base = _PER_CENTRE_BYTES * n
     memo = {}
-    main = grid_plan(kernel, centres, tree, e, neighbours=product_neighbours(n, limit), memo=memo)
+    main = grid_plan(kernel, centres, tree, e, neighbours=product_neighbours(n, limit), memo=memo, limit=limit)
     out = main["outside"]
     parts = {"grid": main["grid"], "near": main["near"]}
     work = [main["work"]]
@@ -184,11 +198,13 @@ def memory_plan(kernel, centres, rtol: float = 1e-6, eps: float | None = None, r
     tier_nnz = 0
     for tol in (1e-3, 1e-4):
         if tol >= 10 * e:
-            t = grid_plan(kernel, centres, tree, tol, radius=max(rc300, main["h"] / split_design(1.0, tol / 10)[2]), outside=out)
+            t = grid_plan(kernel, centres, tree, tol, radius=max(rc300, main["h"] / split_design(1.0, tol / 10)[2]), outside=out,
+                          store=main["store"])
             parts[f"grid {tol:g}"], parts[f"near {tol:g}"] = t["grid"], t["near"]
             work.append(t["work"])
             tier_nnz = t["near"] / NNZ_BYTES if tol == 1e-3 else tier_nnz
-    parts["preconditioner"] = _twolevel_plan(kernel, centres, tree, n, tier_nnz or main["near"] / NNZ_BYTES, preconditioner)
+    parts["preconditioner"] = _twolevel_plan(kernel, centres, tree, n, tier_nnz or main["near"] / NNZ_BYTES, preconditioner,
+                                             limit)
     parts["krylov"] = int(2 * (restart + 1) * (n + 4) * 8 + 3 * n * 4 * 8)
     products = sum(v for k, v in parts.items() if k.startswith(("grid", "near")))
     fit = base + products + parts["preconditioner"] + parts["krylov"] + max(work)
