@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import re
 import time
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -237,3 +238,52 @@ def test_cli_refuses_a_large_fit_right_after_reading(tmp_path, capsys, monkeypat
     assert re.search(r"out of memory: a fast fit of about 66,064 constraints \(60,000 surface\) and its mesh needs about .*--tiles auto", err), err
     assert not any(w in err for w in API_WORDS), err
     assert seconds < 60
+
+
+_MEASURE = r"""
+import json, sys
+import numpy as np
+from o3drbf.rbf.kernels import MultiOrder
+from o3drbf.solvers import fast
+from o3drbf.solvers.fast import neighbours
+from o3drbf.synthetic.shapes import Torus
+
+def status(field):
+    for line in open("/proc/self/status"):
+        if line.startswith(field + ":"):
+            return int(line.split()[1]) * 1024
+
+n, store = int(sys.argv[1]), sys.argv[2] == "stored"
+if not store:
+    neighbours.NEAR_STORE_BYTES = 0  # the near fields summed on the fly, as at a million constraints
+p, nrm = Torus().sample(int(n / 1.1), seed=0)
+idx = np.random.default_rng(1).choice(len(p), n - len(p), replace=False)
+c = np.vstack([p, p[idx] + 0.05 * nrm[idx]])
+y = np.r_[np.zeros(len(p)), -np.ones(n - len(p))]
+lam = np.r_[np.full(len(p), 1e-3), np.full(n - len(p), 2.0)]
+kernel = MultiOrder(10.0, 0.01)
+plan = fast.memory_plan(kernel, c, evaluation=False)
+fast.solve(kernel, c[:500], y[:500], lam[:500])  # compiled kernels loaded before the baseline
+open("/proc/self/clear_refs", "w").write("5")
+base = status("VmRSS")
+sol = fast.solve(kernel, c, y, lam)
+print(json.dumps({"plan": plan["fit"], "used": status("VmHWM") - base, "store": sol.info["split"]["near_field"]}))
+"""
+
+
+@pytest.mark.skipif(not Path("/proc/self/clear_refs").exists(), reason="needs Linux's /proc/self/clear_refs")
+@pytest.mark.parametrize("near", ["stored", "summed on the fly"])
+def test_plan_is_within_a_factor_of_the_measured_peak(near):
+    """The up-front estimate of a fit against the resident memory the fit really takes (the peak
+    of a fresh process over its resident memory before the fit, read from the kernel), with the
+    near fields stored and summed on the fly: within a factor of 1.5 either way."""
+    import json
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", _MEASURE, "30000", near.split()[0]], capture_output=True, text=True,
+                         check=True)
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    assert got["store"] == near
+    ratio = got["used"] / got["plan"]
+    assert 1 / 1.5 < ratio < 1.5, f"measured {got['used'] / GB:.2f} GB, planned {got['plan'] / GB:.2f} GB"

@@ -28,12 +28,13 @@ def fast_memory(n: int, restart: int = 50, eps: float = 1e-6) -> int:
     """Rough peak bytes of a fast solve with ``n`` constraints, from ``n`` alone.
 
     The FMM route (fmm3dpy's working memory) or the grid route's near parts
-    (1,800 stored entries a row: the product's and its two companions') with 10,000 bytes of grid a centre; the
-    estimate that knows the centres is :func:`memory_plan`."""
+    (1,800 stored entries a row: the product's and its two companions', unless
+    :func:`~o3drbf.solvers.fast.neighbours.store_near` sums them on the fly) with 4,000 bytes of grid a
+    centre; the estimate that knows the centres is :func:`memory_plan`."""
     fmm = _FMM_BYTES_PER_POINT * n * (1.0 if eps <= 1e-6 else 0.6) + 12 * n * 300
-    grid = NNZ_BYTES * n * 1800 + 1e4 * n
+    grid = (NNZ_BYTES * n * 1800 if store_near(n * 1100) else _ON_THE_FLY_BYTES * n) + 4e3 * n
     krylov = 2 * (restart + 2) * n * 8
-    precond = 12 * n * 64 + 8 * 6000**2 + 256 * 2**20 + (12 * (n // 8) * 1000 if n > 144_000 else 0)
+    precond = 12 * n * 65 + 64 * n + 8 * 6000**2 + 256 * 2**20 + (12 * (n // 8) * 1000 if n > 144_000 else 0)
     return int(max(fmm, grid) + krylov + precond)
 
 
@@ -122,7 +123,7 @@ def _twolevel_plan(kernel, centres, tree, lam_count, coarse_update_nnz, options=
 
     o = {**asdict(TwoLevelSettings()), **(options or {})}  # the preconditioner's own defaults
     n = len(centres)
-    total = 2 * NNZ_BYTES * n * (o["neighbours"] + 1)  # the tapered near matrix (and its copy while built)
+    total = NNZ_BYTES * n * (o["neighbours"] + 1) + 64 * n  # the tapered near matrix (built in place by a cell list)
     want = max(n // o["coarse_ratio"], 1)
     nested = o["nested"] and n > o["exact_below"] and want > o["max_coarse"] and n > o["nested_ratio"] * o["max_coarse"]
     mc = n if n <= o["exact_below"] else min(want, n if nested else o["max_coarse"], n)

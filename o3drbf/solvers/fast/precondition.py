@@ -15,7 +15,7 @@ from o3drbf.rbf.sums import kernel_matrix
 from o3drbf.solvers.fast.fgmres import fgmres
 from o3drbf.solvers.fast.fmm import FastSum
 from o3drbf.solvers.fast.grid import GridSum, fast_operator
-from o3drbf.solvers.fast.neighbours import sparse_matrix
+from o3drbf.solvers.fast.neighbours import CellList, njit
 
 __all__ = ["TwoLevel", "TwoLevelSettings"]
 
@@ -33,7 +33,9 @@ def _uniform_subset(points: np.ndarray, count: int) -> np.ndarray:
     for _ in range(30):
         h = math.sqrt(hi_h * lo_h)
         key = np.floor((points - lo) / h).astype(np.int64)
-        _, first = np.unique(key, axis=0, return_index=True)
+        dims = key.max(axis=0) + 1
+        flat = (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]  # one integer a voxel, in the rows' order
+        _, first = np.unique(flat, return_index=True)
         if best is None or abs(len(first) - count) < abs(len(best) - count):
             best = first
         if len(first) > count:
@@ -43,6 +45,37 @@ def _uniform_subset(points: np.ndarray, count: int) -> np.ndarray:
         if abs(len(first) - count) <= 0.05 * count:
             break
     return np.sort(best)
+
+
+@njit(cache=True)
+def _set_diagonal(indptr, indices, data, diag):
+    """``data`` of the CSR matrix at (p, p) set to ``diag[p]`` (in place)."""
+    for p in range(len(indptr) - 1):
+        for c in range(indptr[p], indptr[p + 1]):
+            if indices[c] == p:
+                data[c] = diag[p]
+
+
+def _kth_distance(tree, x, k, chunk=100_000):
+    """Distance from every point of ``x`` to its k-th nearest (by chunks: no (N, k) arrays)."""
+    out = np.empty(len(x))
+    for s in range(0, len(x), chunk):
+        out[s : s + chunk] = tree.query(x[s : s + chunk], k=[k], workers=-1)[0][:, 0]
+    return out
+
+
+def tapered_near(kernel, centres, tree, neighbours: int, diag):
+    """The local step's matrix: ``phi(r) - phi(R)`` between the centres within R (the median distance
+    to the ``neighbours``-th neighbour), its diagonal ``diag`` (CSR, built in place by the cell list,
+    the tapered kernel tabulated at 32,768 radii).  Returns (matrix, R, phi(R))."""
+    n = len(centres)
+    radius = float(np.median(_kth_distance(tree, centres, neighbours + 1)))
+    phir = float(kernel(np.array([radius]))[0])
+    rr = np.linspace(0.0, 1.01 * radius, 1 << 15)
+    tab = kernel(rr) - phir
+    m = CellList(centres, radius).matrix(np.ascontiguousarray(centres, dtype=float), tab, float(rr[1] - rr[0]))
+    _set_diagonal(m.indptr, m.indices, m.data, np.broadcast_to(np.asarray(diag(phir), dtype=float), (n,)).copy())
+    return m, radius, phir
 
 
 def _subset_operator(fast, subset, eps):
@@ -134,16 +167,11 @@ class TwoLevel:
         # Near field: tapered kernel phi(r) - phi(R) on ~k neighbours.
         k = min(neighbours, n - 1)
         if k >= 1:
-            d, _ = fast.tree.query(x, k=k + 1)
-            radius = float(np.median(d[:, -1]))
-            phir = float(kernel(np.array([radius]))[0])
-            s = sparse_matrix(
-                fast.tree, x, radius, lambda r, i, j: kernel(r) - phir, k + 1, n, drop_self=True
-            )
+            self.near, radius, phir = tapered_near(kernel, x, fast.tree, k, lambda phir: damping * (fast.phi0 - phir) + self.lam)
             diag = damping * (fast.phi0 - phir) + self.lam
         else:
-            radius, s, diag = 0.0, sp.csr_matrix((n, n)), fast.phi0 + self.lam
-        self.near = (s + sp.diags(diag)).tocsr()
+            radius, diag = 0.0, fast.phi0 + self.lam
+            self.near = sp.diags(diag).tocsr()
         self.near_diag = np.asarray(diag, dtype=float)
         self.radius = radius
         # Coarse level.
