@@ -14,7 +14,7 @@ from o3drbf.solvers.fast.neighbours import (HAVE_GRID, NNZ_BYTES, default_neighb
                                             store_near)
 from o3drbf.solvers.fast.tolerance import DEFAULT_EPS, clip_eps, product_tolerance
 
-__all__ = ["fast_memory", "grid_plan", "memory_plan", "check_memory", "fitting_fraction"]
+__all__ = ["fast_memory", "grid_plan", "near_choice", "memory_plan", "check_memory", "fitting_fraction"]
 
 #: Bytes of FMM working memory per point (fmm3dpy at 1e-6; benchmarks/recorded/fast_solver.md).
 _FMM_BYTES_PER_POINT = 8_000
@@ -52,8 +52,7 @@ def _core_box(centres, tree, rc, outside=None):
 
 
 def grid_plan(kernel, centres, tree, eps: float, neighbours: int | None = None, radius: float | None = None,
-              outside=None, box=None, near: bool = True, memo: dict | None = None, store: bool | None = None,
-              limit: int | None = None) -> dict:
+              outside=None, box=None, near: bool = True, memo: dict | None = None) -> dict:
     """What a :class:`GridSum` with these arguments would take, without building it.
 
     Parameters
@@ -67,13 +66,9 @@ def grid_plan(kernel, centres, tree, eps: float, neighbours: int | None = None, 
     box : (2, 3) array_like, optional
         A box the grid must cover too (:meth:`GridSum.cover`).
     near : bool
-        Count the near field of products at the centres (evaluation at
-        targets has none).
-    store : bool, optional
-        Whether that near field is stored (as :class:`GridSum`'s ``store``;
-        default :func:`~o3drbf.solvers.fast.neighbours.store_near` with ``limit``).
-    limit : int, optional
-        The memory limit of that choice.
+        Count the stored near-field matrix of products at the centres
+        (evaluation at targets has none; :func:`near_choice` turns it into a
+        near field summed on the fly).
     memo : dict, optional
         Neighbour radii already found on this tree, by neighbour count (filled in).
 
@@ -82,9 +77,9 @@ def grid_plan(kernel, centres, tree, eps: float, neighbours: int | None = None, 
     dict
         ``grid`` (the kernel transform, kept), ``work`` (the transforms of
         one product, and the rows of a near field summed on the fly, freed
-        after it), ``near`` (sparse matrix; 0 when summed on the fly),
-        ``potential`` (one grid potential), bytes; ``h``, ``radius``
-        (design), ``outside``, ``store``.
+        after it), ``near`` (sparse matrix), ``potential`` (one grid
+        potential), bytes; ``h``, ``radius`` (design), ``outside``,
+        ``entries`` (of the near field), ``core`` (centres on the grid).
     """
     n = len(centres)
     e = clip_eps(eps)
@@ -103,16 +98,22 @@ def grid_plan(kernel, centres, tree, eps: float, neighbours: int | None = None, 
     work = Mesh.nbytes(lo, hi, h, half, e >= 1e-4, "work")
     pad = (half + 2) * h
     cells = float(np.prod([math.ceil((hi[i] - lo[i] + 2 * pad) / h) + 1 for i in range(3)]))
-    nnz, near_bytes = 0.0, 0
-    if near:
-        nnz = near_entries(centres, tree, near_table(kernel, rc, sigma, e / 10)[0], n_core)
-        store = store_near(nnz, limit) if store is None else bool(store)
-        if store:
-            near_bytes = int(NNZ_BYTES * nnz + 8 * n_core)
-        else:
-            work += _ON_THE_FLY_BYTES * n_core
-    return {"grid": int(grid), "work": int(work), "near": near_bytes, "potential": int(8 * cells),
-            "h": h, "radius": rc, "outside": outside, "store": bool(near and store)}
+    nnz = near_entries(centres, tree, near_table(kernel, rc, sigma, e / 10)[0], n_core) if near else 0.0
+    return {"grid": int(grid), "work": int(work), "near": int(NNZ_BYTES * nnz + 8 * n_core) if near else 0,
+            "potential": int(8 * cells), "h": h, "radius": rc, "outside": outside, "entries": nnz,
+            "core": n_core}
+
+
+def near_choice(plan: dict, store: bool | None = None, limit: int | None = None) -> dict:
+    """A :func:`grid_plan` of products at the centres with their near field stored or summed on the fly
+    (``store``; default :func:`~o3drbf.solvers.fast.neighbours.store_near` of its entries at ``limit``,
+    as :class:`GridSum` chooses): ``store`` set, and on the fly ``near`` 0 and its rows in ``work``."""
+    out = dict(plan)
+    out["store"] = store_near(plan["entries"], limit) if store is None else bool(store)
+    if not out["store"]:
+        out["near"] = 0
+        out["work"] = plan["work"] + _ON_THE_FLY_BYTES * plan["core"]
+    return out
 
 
 def _twolevel_plan(kernel, centres, tree, lam_count, coarse_update_nnz, options=None, limit=None) -> int:
@@ -134,7 +135,7 @@ def _twolevel_plan(kernel, centres, tree, lam_count, coarse_update_nnz, options=
     sub_idx = np.sort(np.random.default_rng(2).choice(n, mc, replace=False))
     sub = centres[sub_idx]
     sub_tree = cKDTree(sub)
-    g = grid_plan(kernel, sub, sub_tree, max(o["nested_eps"], 1e-8), neighbours=product_neighbours(mc), limit=limit)
+    g = near_choice(grid_plan(kernel, sub, sub_tree, max(o["nested_eps"], 1e-8), neighbours=product_neighbours(mc)), limit=limit)
     inner = _twolevel_plan(kernel, sub, sub_tree, mc, g["near"] / NNZ_BYTES, o, limit)
     krylov = 2 * (o["nested"] + 2) * mc * 8
     return int(total + g["grid"] + g["near"] + inner + krylov + _PER_CENTRE_BYTES * mc)  # (its work: below the outer's)
@@ -191,7 +192,7 @@ def memory_plan(kernel, centres, rtol: float = 1e-6, eps: float | None = None, r
     tree = cKDTree(centres)
     base = _PER_CENTRE_BYTES * n
     memo = {}
-    main = grid_plan(kernel, centres, tree, e, neighbours=product_neighbours(n, limit), memo=memo, limit=limit)
+    main = near_choice(grid_plan(kernel, centres, tree, e, neighbours=product_neighbours(n, limit), memo=memo), limit=limit)
     out = main["outside"]
     parts = {"grid": main["grid"], "near": main["near"]}
     work = [main["work"]]
@@ -199,8 +200,8 @@ def memory_plan(kernel, centres, rtol: float = 1e-6, eps: float | None = None, r
     tier_nnz = 0
     for tol in (1e-3, 1e-4):
         if tol >= 10 * e:
-            t = grid_plan(kernel, centres, tree, tol, radius=max(rc300, main["h"] / split_design(1.0, tol / 10)[2]), outside=out,
-                          store=main["store"])
+            t = near_choice(grid_plan(kernel, centres, tree, tol, radius=max(rc300, main["h"] / split_design(1.0, tol / 10)[2]),
+                                      outside=out), store=main["store"])
             parts[f"grid {tol:g}"], parts[f"near {tol:g}"] = t["grid"], t["near"]
             work.append(t["work"])
             tier_nnz = t["near"] / NNZ_BYTES if tol == 1e-3 else tier_nnz
