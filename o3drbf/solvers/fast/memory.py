@@ -219,9 +219,13 @@ def memory_plan(kernel, centres, rtol: float = 1e-6, eps: float | None = None, r
         at_centres = grid_plan(kernel, centres, tree, DEFAULT_EPS, near=False, outside=out, memo=memo)
         at_box = grid_plan(kernel, centres, tree, DEFAULT_EPS, near=False, box=np.asarray(box, dtype=float), outside=out,
                            memo=memo)
+        # The vertex normals come from a second grid at a tenth of the tolerance, beside the values' one.
+        fine = grid_plan(kernel, centres, tree, DEFAULT_EPS / 10, near=False, box=np.asarray(box, dtype=float), outside=out,
+                         memo=memo)
         parts["evaluator"] = at_box["grid"] + at_box["potential"]
+        parts["evaluator gradients"] = fine["grid"] + fine["potential"]
         end = base + products + at_centres["grid"] + at_centres["potential"] + max(work + [at_centres["work"]])
-        mesh = base + parts["evaluator"] + at_box["work"] + int(extraction_bytes)
+        mesh = base + parts["evaluator"] + parts["evaluator gradients"] + max(at_box["work"], fine["work"]) + int(extraction_bytes)
     return {"total": int(max(fit, end, mesh)), "fit": int(fit), "end_of_fit": int(end), "mesh": int(mesh), "parts": parts,
             "route": "grid"}
 
