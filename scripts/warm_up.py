@@ -40,6 +40,12 @@ def main() -> int:
             if code:
                 print(f"warm-up: reconstruct {source.name} exited {code}", file=sys.stderr)
                 return code
+        # Dense solves from 2,000 constraints factor a float32 copy (o3drbf.solvers.dense): its kernel too.
+        import numpy as np
+
+        from o3drbf.rbf.compiled import lower_single
+
+        lower_single(np.asfortranarray(np.eye(8)))
     print(f"warm-up: compiled kernels cached in {time.perf_counter() - t0:.0f} s")
     return 0
 
