@@ -104,3 +104,18 @@ def test_import_o3drbf_is_light_and_every_public_name_resolves():
     assert lines[0].split() == ["False", "False", "False"], out
     assert lines[1].endswith("[] True") and int(lines[1].split()[0]) > 20, out
     assert lines[2].split() == ["True", "True"], out
+
+
+def test_help_loads_no_compiled_kernels_nor_scipy():
+    """``o3drbf --help`` and ``o3drbf reconstruct --help`` build every parser (their help names the code's
+    constants, e.g. the solver switch) without importing Numba, SciPy or Open3D: it answers at once."""
+    out = _python(
+        "import contextlib, io, sys\n"
+        "from o3drbf.cli import main\n"
+        "for argv in (['--help'], ['reconstruct', '--help']):\n"
+        "    with contextlib.redirect_stdout(io.StringIO()) as text, contextlib.suppress(SystemExit):\n"
+        "        main(argv)\n"
+        "    assert 'usage' in text.getvalue()\n"
+        "print(*(m in sys.modules for m in ('numba', 'scipy', 'open3d')))\n"
+    )
+    assert out.split() == ["False", "False", "False"], out

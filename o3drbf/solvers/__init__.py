@@ -26,12 +26,9 @@ import warnings
 import numpy as np
 
 from o3drbf.rbf.kernels import Kernel
-from o3drbf.rbf.sums import polynomial_basis
 from o3drbf.solvers.base import (RESIDUAL_ROWS, ConvergenceWarning, MemoryRefusal, Solution, available_memory, dense_memory, gigabytes,
                                  memory_limit_or_default,
                                  relative_residual)
-from o3drbf.solvers.dense import DENSE_MAX, DenseFactor, solve_dense
-from o3drbf.solvers.iterative import solve_gmres
 from o3drbf.validation import as_points, check_choice, check_number, per_point
 
 __all__ = ["Solution", "solve", "available_memory", "MemoryRefusal", "dense_memory", "ConvergenceWarning", "METHODS",
@@ -48,6 +45,16 @@ METHODS = ("auto", "dense", "iterative", "fast")
 DENSE_AUTO_MAX = 12_000
 
 log = logging.getLogger("o3drbf")
+
+
+def __getattr__(name):
+    """``DENSE_MAX`` from :mod:`o3drbf.solvers.dense`, imported on first use: ``import o3drbf.solvers`` loads
+    no compiled kernel, SciPy solver or Numba (the command line's help names :data:`DENSE_AUTO_MAX`)."""
+    if name == "DENSE_MAX":
+        from o3drbf.solvers.dense import DENSE_MAX
+
+        return DENSE_MAX
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 #: Above this many centres a fast-solved surface is evaluated by fast sums too
 #: (below it the compiled direct sum is as fast; docs/data/design-measurements.md, "Solver choice").
@@ -140,6 +147,10 @@ def solve(
     check_choice("backend", backend, ("auto", "grid", "fmm"))
     if rtol is not None:
         rtol = check_number("rtol", rtol, low=0.0, high=1.0, low_open=True)
+    from o3drbf.rbf.sums import polynomial_basis
+    from o3drbf.solvers.dense import solve_dense
+    from o3drbf.solvers.iterative import solve_gmres
+
     q = polynomial_basis(centres, kernel.polynomial_degree)
     m = q.shape[1]
     if n < m + 1:
@@ -216,6 +227,8 @@ DENSE_RESIDUAL_WARN = 1e-6
 def resolve_method(method: str, n: int, m: int, limit: int) -> str:
     """The method a solve of ``n`` constraints and ``m`` polynomial terms runs: "auto" resolved
     (:func:`choose_method`), a dense solve refused above ``DENSE_MAX`` or ``limit`` bytes."""
+    from o3drbf.solvers.dense import DENSE_MAX
+
     if method == "auto":
         method, why = choose_method(n + m, limit)
         log.info("solver: %s (%s)", method, why)
@@ -275,6 +288,8 @@ class Refitter:
         n = len(self.centres)
         self.options = options
         self.max_changed = max(1, n // 8) if max_changed is None else int(max_changed)
+        from o3drbf.rbf.sums import polynomial_basis
+
         q = polynomial_basis(self.centres, kernel.polynomial_degree)
         self.q = q
         self.factor = None
@@ -309,6 +324,8 @@ class Refitter:
         t0 = time.perf_counter()
         if self.method == "dense" and self.factor is None:
             try:
+                from o3drbf.solvers.dense import DenseFactor
+
                 self.factor = DenseFactor(self.kernel, self.centres, self.smoothing, self.q)
             except np.linalg.LinAlgError:
                 self.method = "dense-unfactored"

@@ -10,7 +10,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from o3drbf.rbf.sums import kernel_sum
 
 __all__ = ["Solution", "ConvergenceWarning", "MemoryRefusal", "available_memory", "memory_limit_or_default", "dense_memory",
            "relative_residual", "RESIDUAL_ROWS", "gigabytes", "busy_machine", "dense_blas_threads"]
@@ -194,6 +193,8 @@ def relative_residual(kernel, centres, y, lam, q, w, p, rows: int | None = None,
     -------
     float
     """
+    from o3drbf.rbf.sums import kernel_sum  # here: importing o3drbf.solvers stays light (o3drbf --help)
+
     n = len(centres)
     if rows is not None and rows < n:
         idx = np.sort(np.random.default_rng(seed).choice(n, int(rows), replace=False))
