@@ -245,13 +245,13 @@ def _fit(cset, params, options: Options, base: ImplicitSurface | None = None):
 def _tile_points(store, norm: Normalization, cameras, settings: dict, pick=None):
     """The PointSet of one tile store (data coordinates), with its normals as the whole cloud's check left them.
 
-    ``pick``: a callable ``(box points) -> indices`` of the points to keep (all when None).
+    ``pick``: a callable ``(box points) -> indices`` of the points to keep, or None for all of them.
     """
     from o3drbf.pointset import PointSet
 
     sub, nsub, pcam = read_tile_points(store)
-    if pick is not None:
-        keep = pick(sub)
+    keep = None if pick is None else pick(sub)
+    if keep is not None:
         sub, nsub, pcam = sub[keep], nsub[keep], pcam[keep]
     if not settings["normals"]:
         nsub = None
@@ -308,9 +308,9 @@ def fit_tile(t: int, store=None, base: ImplicitSurface | None = None, partition:
     info = {"tile": t}
     limit = None if s["surface_count_per_tile"] is None else TILE_DEFAULTS["support_points_per_constraint"] * s["surface_count_per_tile"]
 
-    def pick(box_points):  # denser than its constraints need: a seeded uniform subsample
+    def pick(box_points):  # denser than its constraints need: a seeded uniform subsample (None: every point)
         info["points"], info["owned"] = int(len(box_points)), owned(box_points)
-        return sample_indices(len(box_points), len(box_points) if limit is None else limit, seed)
+        return None if limit is None or len(box_points) <= limit else sample_indices(len(box_points), limit, seed)
 
     data, box = _tile_points(store, norm, cameras, s, pick)
     info["used"], used_owned = int(len(data)), owned(box)
@@ -545,10 +545,11 @@ def fit_tiled(points, normals=None, *, cameras=None, point_camera=None, options:
     sample, camera_list, camera_map = _sample_points(source, camera_list, norm, opts, seed)
     sample_box = norm.forward(sample.points)
     cap = surface_tile_cap(sample_box, mesh_cell_box(opts, norm, data_lo, data_hi), to.surface_count_per_tile)
+    by_points = tile_count(n, to.tiles, to.points_per_tile)
     count = tile_count(n, to.tiles, to.points_per_tile, surface_cap=cap)
-    if count < tile_count(n, to.tiles, to.points_per_tile):
+    if count < by_points:
         log.info("tiles: %d tiles (not %d): more would put the surface constraints closer than the mesh shows; "
-                 "each tile fits from a uniform subsample of its points", count, tile_count(n, to.tiles, to.points_per_tile))
+                 "each tile fits from a uniform subsample of its points", count, by_points)
     cells_lo, cells_hi = kd_split(sample_box, count, _root_box(norm, data_lo, data_hi))
     occluders = sample_box if camera_list is not None else None  # what hides a camera from a tile, outside the tile
     del sample_box
