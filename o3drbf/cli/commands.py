@@ -279,7 +279,7 @@ def _watertight_line(rep: dict) -> str:
             f"Euler characteristic {rep['euler_characteristic']}, {rep['components']} component(s)")
 
 
-def tiled_summary(stats: dict, input_path, output_path, seconds: float, mapped: bool = False, report: dict | None = None) -> str:
+def tiled_summary(stats: dict, input_path, output_path, seconds: float, mapped: str = "", report: dict | None = None) -> str:
     """The closing summary of ``reconstruct --tiles``.
 
     Parameters
@@ -289,9 +289,8 @@ def tiled_summary(stats: dict, input_path, output_path, seconds: float, mapped: 
     input_path, output_path : path-like
     seconds : float
         Wall time of the whole command.
-    mapped : bool or str
-        How the points were read without loading the file ("memory-mapped", "read chunk by chunk"; True:
-        memory-mapped), or False.
+    mapped : str
+        How the points were read without loading the file ("memory-mapped", "read chunk by chunk"), or "".
     report : dict, optional
         :func:`o3drbf.mesh.metrics.mesh_report` of the mesh: adds the
         watertight line of the untiled summary.
@@ -302,7 +301,7 @@ def tiled_summary(stats: dict, input_path, output_path, seconds: float, mapped: 
         f"o3drbf reconstruct --tiles: {input_path} -> {output_path}",
         f"  points           {stats['points']:,} read, {stats.get('kept', stats['points']):,} kept"
         + (f" ({stats['outliers']:,} removed as outliers)" if stats.get("outliers") else "")
-        + (f" ({'memory-mapped' if mapped is True else mapped}, spread to per-tile files)" if mapped else ""),
+        + (f" ({mapped}, spread to per-tile files)" if mapped else ""),
         *([f"  cameras          {stats['cameras']}: exterior constraints toward them and the free-space outlier test in every tile"]
           if stats.get("cameras") else []),
         *([f"  denoised         in {stats['denoised_tiles']} of {stats['tiles']} tiles (surface constraints moved onto local fits "
