@@ -40,12 +40,15 @@ def main() -> int:
             if code:
                 print(f"warm-up: reconstruct {source.name} exited {code}", file=sys.stderr)
                 return code
-        # Dense solves from 2,000 constraints factor a float32 copy (o3drbf.solvers.dense): its kernel too.
+        # Dense solves from 2,000 constraints factor a float32 copy (o3drbf.solvers.dense), filled with the
+        # double matrix in one pass (lower_pair), or copied from it (lower_single): their kernels too.
         import numpy as np
 
-        from o3drbf.rbf.compiled import lower_single
+        from o3drbf.rbf.compiled import lower_pair, lower_single
+        from o3drbf.rbf.kernels import MultiOrder
 
         lower_single(np.asfortranarray(np.eye(8)))
+        lower_pair(MultiOrder(10, 0.01), np.eye(3), np.ones(3))
     print(f"warm-up: compiled kernels cached in {time.perf_counter() - t0:.0f} s")
     return 0
 

@@ -28,7 +28,7 @@ try:  # numba is a dependency, but the library still works (slower) without it
 except ImportError:  # pragma: no cover
     HAVE_NUMBA = False
 
-__all__ = ["HAVE_NUMBA", "direct_sum", "direct_matrix", "lower_single", "supports", "check_sum_arrays", "table_sum", "supports_table", "KernelTable"]
+__all__ = ["HAVE_NUMBA", "direct_sum", "direct_matrix", "lower_single", "lower_pair", "supports", "check_sum_arrays", "table_sum", "supports_table", "KernelTable"]
 
 # kernel codes
 _MULTIORDER, _GAUSSIAN, _THINPLATE = 0, 1, 2
@@ -193,6 +193,76 @@ if HAVE_NUMBA:
             u = n - 1 - t
             if u != t:
                 squares[u] = _single_column(a, out, u)
+
+
+if HAVE_NUMBA:
+
+    @numba.njit(cache=True, inline="always")
+    def _pair_column(code, p, x, diagonal, out, single, j):
+        d = _phi(code, p, 0.0) + diagonal[j]
+        out[j, j] = d
+        single[j, j] = np.float32(d)
+        acc = 0.0
+        for i in range(j + 1, x.shape[0]):
+            dx, dy, dz = x[i, 0] - x[j, 0], x[i, 1] - x[j, 1], x[i, 2] - x[j, 2]
+            v = _phi(code, p, math.sqrt(dx * dx + dy * dy + dz * dz))
+            out[i, j] = v
+            single[i, j] = np.float32(v)
+            acc += v * v
+        return d * d + 2.0 * acc
+
+    @numba.njit(cache=True, parallel=True)
+    def _matrix_lower_pair(code, p, x, diagonal, out, single, squares):
+        n = x.shape[0]
+        half = (n + 1) // 2
+        for t in numba.prange(half):  # columns t and n - 1 - t in one task, as in _matrix_lower
+            squares[t] = _pair_column(code, p, x, diagonal, out, single, t)
+            u = n - 1 - t
+            if u != t:
+                squares[u] = _pair_column(code, p, x, diagonal, out, single, u)
+
+
+def lower_pair(kernel, x: np.ndarray, diagonal: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """``A = Phi(x, x) + diag(diagonal)``: its lower triangle in float64 and float32, and ``||A||_F``, in one pass.
+
+    The same numbers as ``direct_matrix(kernel, x, x, lower=True)`` with
+    ``diagonal`` added to its diagonal, then :func:`lower_single` of that:
+    each entry is evaluated once and stored twice, so the float32 copy costs
+    no second pass over the matrix.  The upper triangles are left
+    uninitialised.
+
+    Parameters
+    ----------
+    kernel : Kernel
+        One with a compiled form (:func:`supports`).
+    x : (N, 3) array_like
+        Finite points.
+    diagonal : (N,) array_like
+        Added to the diagonal (the smoothing).
+
+    Returns
+    -------
+    matrix : (N, N) float64 ndarray, Fortran order
+    single : (N, N) float32 ndarray, Fortran order
+    frobenius : float
+        ``||A||_F`` of the symmetric matrix (off-diagonal entries counted twice).
+    """
+    if not supports(kernel):
+        raise ValueError(f"kernel {kernel.name!r} has no compiled form here; use direct_matrix's NumPy fallback and lower_single")
+    code, p = _params(kernel)
+    x = np.ascontiguousarray(x, float)
+    diagonal = np.ascontiguousarray(diagonal, float)
+    if x.ndim != 2 or x.shape[1] != 3:
+        raise ValueError(f"x must have shape (N, 3), got {x.shape}")
+    if diagonal.shape != (len(x),):
+        raise ValueError(f"diagonal must have shape ({len(x)},), one per point, got {diagonal.shape}")
+    if not (np.isfinite(x).all() and np.isfinite(diagonal).all()):
+        raise ValueError("x or diagonal has NaN or infinite entries; compiled kernels need finite input")
+    out = np.empty((len(x), len(x)), order="F")
+    single = np.empty((len(x), len(x)), dtype=np.float32, order="F")
+    squares = np.zeros(len(x))
+    _matrix_lower_pair(code, p, x, diagonal, out, single, squares)
+    return out, single, float(np.sqrt(squares.sum()))
 
 
 def lower_single(a: np.ndarray) -> tuple[np.ndarray, float]:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg as sla
 
-from o3drbf.rbf.compiled import lower_single
+from o3drbf.rbf.compiled import lower_pair, lower_single, supports
 from o3drbf.rbf.sums import kernel_matrix
 from o3drbf.solvers.base import dense_blas_threads
 
@@ -85,16 +85,22 @@ class DenseFactor:
         if precision not in ("auto", "mixed", "double"):
             raise ValueError(f"precision must be 'auto', 'mixed' or 'double', got {precision!r}")
         n = len(centres)
-        a = kernel_matrix(kernel, centres, lower=True)  # the factorization reads the lower triangle only
-        a[np.diag_indices(n)] += lam
         self.precision = ("mixed" if n >= MIXED_MIN else "double") if precision == "auto" else precision
         self.matrix = None  # mixed: A (lower triangle, double) for the residuals of the refinement
         self.single = None  # mixed: the single-precision Cholesky factor
         self.norm = float("nan")  # mixed: ||A||_F
         self.factor = None  # double: scipy's (factor, lower)
+        single = None
+        if self.precision == "mixed" and supports(kernel):
+            # The double matrix and its single copy in one pass over the kernel (no second pass to copy).
+            a, single, self.norm = lower_pair(kernel, centres, np.broadcast_to(np.asarray(lam, dtype=float), (n,)))
+        else:
+            a = kernel_matrix(kernel, centres, lower=True)  # the factorization reads the lower triangle only
+            a[np.diag_indices(n)] += lam
         if self.precision == "mixed":
             with dense_blas_threads():
-                single, self.norm = lower_single(a)
+                if single is None:
+                    single, self.norm = lower_single(a)
                 single, info = sla.lapack.spotrf(single, lower=1, overwrite_a=1, clean=0)
             if info == 0:
                 self.matrix, self.single = a, single

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from o3drbf.rbf.compiled import lower_single
+from o3drbf.rbf.compiled import direct_matrix, lower_pair, lower_single
 from o3drbf.rbf.kernels import MultiOrder
 from o3drbf.rbf.sums import kernel_matrix, polynomial_basis
 from o3drbf.solvers import dense
@@ -33,6 +33,28 @@ def test_lower_single_is_the_lower_triangle_in_float32_and_its_norm():
     np.testing.assert_array_equal(np.tril(out), np.tril(a).astype(np.float32))
     symmetric = np.tril(a) + np.tril(a, -1).T  # what the lower triangle stands for
     assert norm == pytest.approx(np.linalg.norm(symmetric), rel=1e-12)
+
+
+def test_lower_pair_is_the_matrix_and_its_single_copy_bit_for_bit():
+    x, _, lam = problem(300)
+    a, single, norm = lower_pair(KERNEL, x, lam)
+    two_pass = direct_matrix(KERNEL, x, x, lower=True)
+    two_pass[np.diag_indices(len(x))] += lam
+    single_two_pass, norm_two_pass = lower_single(two_pass)
+    assert a.flags.f_contiguous and single.flags.f_contiguous and single.dtype == np.float32
+    np.testing.assert_array_equal(np.tril(a), np.tril(two_pass))
+    np.testing.assert_array_equal(np.tril(single), np.tril(single_two_pass))
+    assert norm == norm_two_pass
+    # and the numpy kernel: the lower triangle of Phi + diag(lambda)
+    np.testing.assert_allclose(np.tril(a), np.tril(kernel_matrix(KERNEL, x, compiled=False) + np.diag(lam)), rtol=1e-12, atol=0)
+
+
+def test_lower_pair_refuses_bad_input_in_one_line():
+    x, _, lam = problem(20)
+    with pytest.raises(ValueError, match="diagonal must have shape"):
+        lower_pair(KERNEL, x, lam[:-1])
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        lower_pair(KERNEL, x, np.where(np.arange(20) == 3, np.nan, lam))
 
 
 def test_mixed_solve_matches_a_float64_numpy_solve():
