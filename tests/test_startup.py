@@ -119,3 +119,26 @@ def test_help_loads_no_compiled_kernels_nor_scipy():
         "print(*(m in sys.modules for m in ('numba', 'scipy', 'open3d')))\n"
     )
     assert out.split() == ["False", "False", "False"], out
+
+
+def test_the_process_command_line_freezes_the_collector_at_the_end_an_in_process_call_does_not(tmp_path):
+    # argv=None (the console script, python -m o3drbf): gc.freeze() once the command is done, and the
+    # outputs are whole; an in-process call with argv leaves the collector as it was.
+    p, n = Sphere(1.0).sample(300, seed=3)
+    write_points(tmp_path / "sphere.ply", p, n)
+    args = ["reconstruct", str(tmp_path / "sphere.ply"), "-o", str(tmp_path / "m.ply"), "--resolution", "16", "-q"]
+    args2 = ["o3drbf"] + args[:3] + [str(tmp_path / "m2.ply")] + args[4:]
+    out = _python(
+        "import gc, sys\n"
+        "from o3drbf.cli.commands import main\n"
+        f"print(main({args!r}), gc.get_freeze_count())\n"
+        f"sys.argv = {args2!r}\n"
+        "code = main()\n"
+        "print(code, gc.get_freeze_count() > 0)\n"
+    )
+    assert out.split() == ["0", "0", "0", "True"], out
+    import open3d as o3d
+
+    for name in ("m.ply", "m2.ply"):
+        mesh = o3d.io.read_triangle_mesh(str(tmp_path / name))
+        assert len(mesh.triangles) > 0 and mesh.is_watertight()

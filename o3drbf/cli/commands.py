@@ -137,6 +137,21 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("o3drbf: interrupted", file=sys.stderr)
         return 130
+    finally:
+        if argv is None:
+            _leave_for_exit()
+
+
+def _leave_for_exit() -> None:
+    """Called when ``main`` ran the process's own command line (``argv=None``: the console script and
+    ``python -m o3drbf``), which ends next: every object still alive is moved out of the garbage collector's
+    reach (:func:`gc.freeze`), so the interpreter's closing collections do not walk the many objects that
+    Numba and SciPy leave behind.  Outputs are already closed and renamed into place by then; ``atexit``
+    handlers and the flush of stdout and stderr still run.  An in-process caller passes ``argv`` and keeps a
+    collector that frees as usual."""
+    import gc
+
+    gc.freeze()
 
 
 def _one_line(exc: BaseException) -> str:

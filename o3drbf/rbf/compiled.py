@@ -251,7 +251,7 @@ def lower_pair(kernel, x: np.ndarray, diagonal: np.ndarray) -> tuple[np.ndarray,
         raise ValueError(f"kernel {kernel.name!r} has no compiled form here; use direct_matrix's NumPy fallback and lower_single")
     code, p = _params(kernel)
     x = np.ascontiguousarray(x, float)
-    diagonal = np.ascontiguousarray(diagonal, float)
+    diagonal = np.array(diagonal, dtype=float)  # a writable copy: one compiled signature (a read-only view would be another)
     if x.ndim != 2 or x.shape[1] != 3:
         raise ValueError(f"x must have shape (N, 3), got {x.shape}")
     if diagonal.shape != (len(x),):
