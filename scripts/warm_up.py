@@ -49,6 +49,10 @@ def main() -> int:
 
         lower_single(np.asfortranarray(np.eye(8)))
         lower_pair(MultiOrder(10, 0.01), np.eye(3), np.ones(3))
+        # Poisson-disc subsampling (clouds with more points than surface constraints): its dart throwing.
+        from o3drbf.prep.darts import greedy_darts
+
+        greedy_darts(np.eye(3), np.arange(3), 0.5)
     print(f"warm-up: compiled kernels cached in {time.perf_counter() - t0:.0f} s")
     return 0
 

@@ -287,7 +287,7 @@ def isolated_points(
     off_spacings = check_number("off_spacings", off_spacings, low=0.0)
     tree = cKDTree(pts)
     if spacing is None:
-        d, _ = tree.query(pts, k=2)
+        d, _ = tree.query(pts, k=2, workers=-1)
         spacing = float(np.median(d[:, 1]))
         if not spacing > 0:
             raise ValueError("points are (mostly) duplicates: their median spacing is zero; remove duplicates first")

@@ -42,7 +42,14 @@ def mean_spacing(points, sample: int | None = None, tree: cKDTree | None = None,
 
 def _greedy(points: np.ndarray, order: np.ndarray, radius: float, tree: cKDTree | None = None) -> np.ndarray:
     """Dart throwing in a fixed order: accept a point unless an accepted one is
-    within ``radius``; each acceptance marks its neighbours (KD-tree) as taken."""
+    within ``radius``; each acceptance marks its neighbours as taken (compiled,
+    :func:`o3drbf.prep.darts.greedy_darts`; a KD-tree loop for a grid too
+    fine to index)."""
+    from o3drbf.prep.darts import greedy_darts
+
+    accepted = greedy_darts(points, order, radius)
+    if accepted is not None:
+        return accepted
     tree = cKDTree(points) if tree is None else tree
     taken = np.zeros(len(points), dtype=bool)
     accepted = []

@@ -69,3 +69,63 @@ def test_shape_samples_lie_on_the_surface_with_outward_normals(shape):
 def test_cube_corner_sees_three_faces():
     p, n = cube_corner(900)
     assert set(map(tuple, n.astype(int))) == {(1, 0, 0), (0, 1, 0), (0, 0, 1)}
+
+
+def _kd_tree_darts(points, order, radius):
+    """The reference: the KD-tree loop the compiled dart throwing replaced."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(points)
+    taken = np.zeros(len(points), dtype=bool)
+    accepted = []
+    for idx in order.tolist():
+        if not taken[idx]:
+            accepted.append(idx)
+            taken[tree.query_ball_point(points[idx], radius)] = True
+    return np.asarray(accepted, dtype=np.int64)
+
+
+@pytest.mark.parametrize("case", ["random", "lattice ties", "torus"])
+def test_compiled_darts_accept_what_the_kd_tree_loop_accepts(case):
+    from o3drbf.prep.darts import greedy_darts
+
+    rng = np.random.default_rng(7)
+    if case == "random":
+        pts, radius = rng.uniform(-1, 1, (4000, 3)), 0.11
+    elif case == "lattice ties":  # neighbours exactly at the radius: kept out by both (|p - q| <= r is taken)
+        g = np.arange(12, dtype=float)
+        pts, radius = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3) * 0.25 - 1.0, 0.5
+    else:
+        from o3drbf.synthetic.shapes import Torus
+
+        pts, radius = Torus().sample(6000, seed=2)[0], 0.03
+    order = rng.permutation(len(pts))
+    got = greedy_darts(pts, order, radius)
+    np.testing.assert_array_equal(got, _kd_tree_darts(pts, order, radius))
+    assert 10 < len(got) < len(pts)
+
+
+def test_poisson_disc_is_the_kd_tree_loops_subset():
+    from o3drbf.prep import sampling
+    from o3drbf.synthetic.shapes import Torus
+
+    pts = Torus().sample(20000, seed=3)[0]
+    kept = poisson_disc(pts, count=3000, seed=4)
+    original = sampling._greedy
+    try:
+        sampling._greedy = lambda points, order, radius, tree=None: _kd_tree_darts(points, order, radius)
+        reference = poisson_disc(pts, count=3000, seed=4)
+    finally:
+        sampling._greedy = original
+    np.testing.assert_array_equal(kept, reference)
+
+
+def test_a_grid_too_fine_to_index_falls_back_to_the_kd_tree_loop():
+    from o3drbf.prep import sampling
+    from o3drbf.prep.darts import greedy_darts
+
+    rng = np.random.default_rng(3)
+    pts = np.vstack([rng.uniform(0, 1e-3, (300, 3)), [[1e4, 1e4, 0.0]]])  # a far point: 1e14 rows of cells
+    order = rng.permutation(len(pts))
+    assert greedy_darts(pts, order, 1e-4) is None
+    np.testing.assert_array_equal(sampling._greedy(pts, order, 1e-4), _kd_tree_darts(pts, order, 1e-4))
