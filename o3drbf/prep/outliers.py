@@ -286,8 +286,11 @@ def isolated_points(
     off_surface = check_number("off_surface", off_surface, low=0.0, low_open=True)
     off_spacings = check_number("off_spacings", off_spacings, low=0.0)
     tree = cKDTree(pts)
+    kk = min(k, n - 1)
+    # the plane's neighbours, queried first: their nearest is the spacing's (the same distances as k=2)
+    near = tree.query(pts, k=kk + 1, workers=-1) if kk >= 3 else None
     if spacing is None:
-        d, _ = tree.query(pts, k=2, workers=-1)
+        d = near[0] if near is not None else tree.query(pts, k=2, workers=-1)[0]
         spacing = float(np.median(d[:, 1]))
         if not spacing > 0:
             raise ValueError("points are (mostly) duplicates: their median spacing is zero; remove duplicates first")
@@ -298,10 +301,9 @@ def isolated_points(
         graph = sparse.coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
         _, labels = connected_components(graph, directed=False)
         isolated |= np.bincount(labels)[labels] < min_component
-    kk = min(k, n - 1)
-    if kk >= 3:
-        _, idx = tree.query(pts, k=kk + 1, workers=-1)
-        nb = pts[idx[:, 1:]]  # (N, k, 3), the point itself excluded
+    if near is not None:
+        idx = near[1]
+        nb = np.take(pts, idx[:, 1:], axis=0)  # (N, k, 3), the point itself excluded (take: a contiguous gather)
         centroid = nb.mean(axis=1)
         q = nb - centroid[:, None, :]
         cov = np.matmul(q.transpose(0, 2, 1), q) / kk  # batched BLAS: several times faster than einsum here

@@ -85,3 +85,37 @@ def test_check_spans_volume():
         check_spans_volume(np.ones((5, 3)))
     with pytest.raises(ValueError, match="min_ratio"):
         check_spans_volume(sphere, min_ratio=2.0)
+
+
+def _isolated_reference(pts, k=24, radius_spacings=5.0, min_component=10, off_surface=5.0, off_spacings=1.5):
+    """isolated_points as first written: a k=2 query for the spacing, the plane's neighbours by fancy indexing."""
+    from scipy import sparse
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    n = len(pts)
+    tree = cKDTree(pts)
+    spacing = float(np.median(tree.query(pts, k=2)[0][:, 1]))
+    pairs = tree.query_pairs(radius_spacings * spacing, output_type="ndarray")
+    graph = sparse.coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    isolated = np.bincount(labels)[labels] < min_component
+    _, idx = tree.query(pts, k=k + 1)
+    nb = pts[idx[:, 1:]]
+    centroid = nb.mean(axis=1)
+    q = nb - centroid[:, None, :]
+    _, vecs = np.linalg.eigh(np.matmul(q.transpose(0, 2, 1), q) / k)
+    normal = vecs[:, :, 0]
+    rms = np.sqrt((np.matmul(q, normal[:, :, None])[..., 0] ** 2).mean(axis=1))
+    offset = np.abs(np.einsum("ni,ni->n", pts - centroid, normal))
+    return isolated | ((offset > off_surface * rms) & (offset > off_spacings * spacing))
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.01])
+def test_isolated_points_match_the_first_written_rule(noise):
+    pts, _ = stacked_tori(4000, noise=noise, frac=0.03, seed=2)
+    pts = np.vstack([pts, pts[:50]])  # duplicates too: a zero nearest distance for those
+    got = isolated_points(pts)
+    reference = _isolated_reference(pts)
+    np.testing.assert_array_equal(got, reference)
+    assert 0 < reference.sum() < len(pts)
