@@ -15,7 +15,11 @@ import importlib
 import sys
 import types
 
-__all__ = ["defer_open3d_plotly", "PLOTLY_MODULE"]
+__all__ = ["defer_open3d_plotly", "PLOTLY_MODULE", "no_hugepage_advice", "HUGEPAGE_VARIABLE"]
+
+#: NumPy's environment variable (read when NumPy is imported): "0" stops it advising the kernel to back
+#: large arrays with transparent huge pages.
+HUGEPAGE_VARIABLE = "NUMPY_MADVISE_HUGEPAGE"
 
 #: The Open3D module that imports Dash and Plotly.
 PLOTLY_MODULE = "open3d.visualization.draw_plotly"
@@ -68,4 +72,22 @@ def defer_open3d_plotly() -> bool:
 
     stand_in.__getattr__ = attribute
     sys.modules[PLOTLY_MODULE] = stand_in
+    return True
+
+
+def no_hugepage_advice() -> bool:
+    """Set ``NUMPY_MADVISE_HUGEPAGE=0`` unless it is set already or NumPy is imported; True when set here.
+
+    Called by the command line before anything imports NumPy.  A dense fit allocates its matrices
+    (a gigabyte at 10,000 constraints) once and fills them at once; with NumPy's huge-page advice
+    and the kernel's usual ``defrag=madvise`` setting, each first touch of those pages may wait while
+    the kernel compacts memory to make huge pages, which on a machine whose memory other jobs have
+    fragmented costs more system time than the huge pages save (benchmarks/recorded/scan_speed.md).
+    A user's own setting of the variable is kept; a program that imported NumPy first is left alone.
+    """
+    import os
+
+    if HUGEPAGE_VARIABLE in os.environ or "numpy" in sys.modules:
+        return False
+    os.environ[HUGEPAGE_VARIABLE] = "0"
     return True

@@ -142,3 +142,17 @@ def test_the_process_command_line_freezes_the_collector_at_the_end_an_in_process
     for name in ("m.ply", "m2.ply"):
         mesh = o3d.io.read_triangle_mesh(str(tmp_path / name))
         assert len(mesh.triangles) > 0 and mesh.is_watertight()
+
+
+def test_the_command_line_turns_numpys_huge_page_advice_off_unless_the_user_set_it():
+    import os
+
+    code = "import o3drbf.cli, numpy, os; print(numpy._core.multiarray._get_madvise_hugepage(), os.environ.get('NUMPY_MADVISE_HUGEPAGE'))"
+    env = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE"}
+    off = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    kept = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env={**env, "NUMPY_MADVISE_HUGEPAGE": "1"}, timeout=120)
+    first = subprocess.run([sys.executable, "-c", "import numpy\n" + code.replace("; print", "\nprint")], capture_output=True, text=True, env=env,
+                           timeout=120)
+    assert off.stdout.split() == ["False", "0"], off.stderr[-500:]
+    assert kept.stdout.split() == ["True", "1"], kept.stderr[-500:]
+    assert first.stdout.split() == ["True", "None"], first.stderr[-500:]  # NumPy imported first: left alone
