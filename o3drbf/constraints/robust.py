@@ -50,7 +50,7 @@ import numpy as np
 from o3drbf.constraints.core import SURFACE, Constraints
 from o3drbf.validation import check_number
 
-__all__ = ["RobustReport", "robust_reweight", "huber_weights", "tukey_weights", "geometric_residuals", "MAD_FACTOR",
+__all__ = ["RobustReport", "robust_reweight", "huber_weights", "tukey_weights", "geometric_residuals", "constraint_residuals", "MAD_FACTOR",
            "LOCAL_RADIUS_SPACINGS"]
 
 #: 1 / Phi^-1(3/4): the MAD of a Gaussian times this is its standard deviation.
@@ -137,10 +137,39 @@ def geometric_residuals(surface, points) -> np.ndarray:
     (M,) array (inf where the gradient vanishes and f does not)
     """
     f, g = surface.evaluate_box(np.asarray(points, dtype=float).reshape(-1, 3), gradient=True)
+    return _distance(f, g)
+
+
+def _distance(f: np.ndarray, g: np.ndarray) -> np.ndarray:
     norm = np.linalg.norm(g, axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
         d = np.abs(f) / norm
     return np.where(np.abs(f) == 0, 0.0, np.where(norm > 0, d, np.inf))
+
+
+def constraint_residuals(surface, constraints: Constraints, index: np.ndarray) -> np.ndarray:
+    """:func:`geometric_residuals` at ``constraints.points[index]``.
+
+    When the surface's centres are the constraints' points (a fit of all of them, evaluated
+    directly), the sums come from :func:`o3drbf.rbf.compiled.direct_sum_at_centres`, which
+    evaluates each pair of centres once for both ends; they agree with ``evaluate_box``'s to
+    rounding.  Otherwise (a fast evaluator, constraints left out, a kernel without a compiled
+    form) this is ``geometric_residuals(surface, constraints.points[index])``.
+    """
+    from o3drbf.rbf import compiled
+
+    centres = getattr(surface, "centres", None)
+    if (getattr(surface, "evaluator", None) is None and centres is not None and compiled.supports(surface.kernel)
+            and centres.shape == constraints.points.shape and np.array_equal(centres, constraints.points)):
+        from o3drbf.rbf.sums import polynomial_basis
+
+        f, g = compiled.direct_sum_at_centres(surface.kernel, centres, surface.weights, index)
+        degree = surface.kernel.polynomial_degree
+        f = f + polynomial_basis(centres[index], degree) @ surface.poly
+        if degree >= 1:
+            g = g + surface.poly[1:4]
+        return _distance(f, g)
+    return geometric_residuals(surface, constraints.points[index])
 
 
 class _Neighbourhoods:
@@ -284,7 +313,7 @@ def robust_reweight(
     m = len(constraints)
     surface, solution = fit(constraints) if first is None else first
     pts = constraints.points[surf]
-    d = geometric_residuals(surface, pts)
+    d = constraint_residuals(surface, constraints, surf)
     measured = len(pts)
     local = None if local_radius is None else _Neighbourhoods(pts, local_radius)
     lam_fit = lam0[surf].copy()  # lambda of the surface constraints in the current fit (inf: dropped)

@@ -137,3 +137,17 @@ def test_local_residuals_fall_back_when_the_check_sees_a_move():
     n = int((dirty.kind == SURFACE).sum())
     np.testing.assert_array_equal(tight[2].weights, full[2].weights)
     assert any(h["measured"] > n for h in tight[2].history[1:]), [h["measured"] for h in tight[2].history]
+
+
+def test_residuals_at_the_constraints_are_evaluate_boxs_to_rounding(fits):
+    from o3drbf.constraints.robust import constraint_residuals
+
+    dirty, _, _, _, (plain, _), _ = fits
+    surf = np.flatnonzero(dirty.kind == SURFACE)
+    assert np.array_equal(plain.centres, dirty.points)  # the pair-once path is taken
+    got = constraint_residuals(plain, dirty, surf)
+    reference = geometric_residuals(plain, dirty.points[surf])
+    np.testing.assert_allclose(got, reference, rtol=1e-9, atol=1e-13)
+    # a surface whose centres are not the constraints (one left out): evaluate_box itself
+    fewer = fitter(Constraints(dirty.points[1:], dirty.values[1:], dirty.smoothing[1:], dirty.kind[1:]))[0]
+    np.testing.assert_array_equal(constraint_residuals(fewer, dirty, surf), geometric_residuals(fewer, dirty.points[surf]))
