@@ -99,6 +99,7 @@ DEFAULTS: dict = {
     "surface_count": "auto",  # from the number of points (AUTO_SIZES)
     "surface_radius": None,
     "denoise": "auto",
+    "surface_adaptive": None,  # None: the uniform rule; a tolerance (spacings): fewer constraints where flat (o3drbf.constraints.adaptive)
     "exterior_ratio": 0.1,
     "exterior_offset": 0.05,
     "sphere_count": 64,
@@ -135,9 +136,10 @@ DEFAULTS: dict = {
     "tile_dir": None,  # folder for the per-tile point files (shared storage for remote workers); None: temporary / in memory
 }
 
-#: Options read only through the Python API (no command-line flag): ``bounds``
+#: Options read only through the Python API (no command-line flag): ``bounds``,
+#: ``surface_adaptive`` (a sweep's option, not a default: docs/data/adaptive-constraints.md)
 #: and the tile sizes beyond ``--tiles``, ``--scheduler`` and ``--workers``.
-API_ONLY = ("bounds", "memory_limit", "points_per_tile", "surface_count_per_tile", "global_count", "overlap", "min_overlap",
+API_ONLY = ("bounds", "surface_adaptive", "memory_limit", "points_per_tile", "surface_count_per_tile", "global_count", "overlap", "min_overlap",
             "partition_sample", "chunk_points", "tile_dir")
 
 #: ``surface_count="auto"`` and ``resolution="auto"``: sparse scans keep the
@@ -484,6 +486,11 @@ class ConstraintOptions:
         the noise of every point is averaged, not only the subsample's;
         "auto": when the estimated noise exceeds ``DENOISE_MIN_NOISE``
         constraint spacings.
+    surface_adaptive : float or None
+        None: the uniform subset.  A tolerance (> 0, in constraint
+        spacings): the subset is thinned where the surface is flat, down to
+        ``1 / MAX_FACTOR**2`` of it, where the sag between constraints
+        stays under this (:mod:`o3drbf.constraints.adaptive`).
     """
 
     surface_count: int | str | None = DEFAULTS["surface_count"]
@@ -492,6 +499,7 @@ class ConstraintOptions:
     exterior_offset: float = DEFAULTS["exterior_offset"]
     sphere_count: int = DEFAULTS["sphere_count"]
     denoise: str | bool = DEFAULTS["denoise"]
+    surface_adaptive: float | None = DEFAULTS["surface_adaptive"]
 
     def validate(self) -> "ConstraintOptions":
         if self.denoise not in ("auto", True, False):
@@ -500,6 +508,8 @@ class ConstraintOptions:
             check_number("surface_count", self.surface_count, low=10, integer=True)
         if self.surface_radius is not None:
             check_number("surface_radius", self.surface_radius, low=0.0, high=2.0, low_open=True)
+        if self.surface_adaptive is not None:
+            check_number("surface_adaptive", self.surface_adaptive, low=0.0, high=10.0, low_open=True)
         check_number("exterior_ratio", self.exterior_ratio, low=0.0, high=1.0)
         check_number("exterior_offset", self.exterior_offset, low=0.0, high=0.5, low_open=True)
         check_number("sphere_count", self.sphere_count, low=0, high=100000, integer=True)

@@ -75,12 +75,16 @@ def build_constraints(data: PointSet, options: ConstraintOptions = ConstraintOpt
     surf = box[idx]
     noise, constraint_noise, moved = float("nan"), float("nan"), 0
     spacing = mean_spacing(surf) if len(surf) > 1 else float("nan")
-    if options.denoise and len(surf) > 10 and len(box) > len(surf):
+    adaptive = options.surface_adaptive is not None and len(surf) > 10 and len(box) > len(surf)
+    if adaptive or (options.denoise and len(surf) > 10 and len(box) > len(surf)):
         from o3drbf.constraints.parameters import estimate_noise
-        from o3drbf.prep.smoothing import neighbourhood_size, project_to_local_surface
 
         noise = estimate_noise(box, seed=seed)
         constraint_noise = noise
+    uniform = len(idx)
+    if options.denoise and len(surf) > 10 and len(box) > len(surf):
+        from o3drbf.prep.smoothing import neighbourhood_size, project_to_local_surface
+
         denoise = options.denoise is True or noise > DENOISE_MIN_NOISE * spacing
         if denoise and auto_count and auto_surface_count(len(data), noisy=True) < len(idx):
             idx = surface_constraints(box, count=auto_surface_count(len(data), noisy=True), seed=seed)
@@ -88,8 +92,11 @@ def build_constraints(data: PointSet, options: ConstraintOptions = ConstraintOpt
             spacing = mean_spacing(surf)
             log.info("noisy points: %d surface constraints (points / %d up to %d, else points / %d)", len(idx),
                      AUTO_SIZES["points_per_constraint"], AUTO_SIZES["noisy_full_rate_max"], AUTO_SIZES["noisy_points_per_constraint"])
+        uniform = len(idx)
+        if adaptive:
+            idx, surf = _thin_flat(box, idx, options.surface_adaptive, noise, seed)
         if denoise:
-            k = neighbourhood_size(len(box), len(surf))
+            k = neighbourhood_size(len(box), uniform)
             moved_data, offset, gain = project_to_local_surface(pts, norm.inverse(surf), k=k, tree=data.kdtree, noise=noise / norm.scale)
             surf, offset = norm.forward(moved_data), offset * norm.scale
             # what is left of the noise: the fits' own standard deviation (RMS over the constraints)
@@ -98,6 +105,8 @@ def build_constraints(data: PointSet, options: ConstraintOptions = ConstraintOpt
             log.info("noise %.3g box units (%.2f spacings): %d surface constraints moved onto local quadric fits of %d points "
                      "(median |offset| %.3g); their noise %.3g", noise, noise / spacing, moved, k, float(np.median(np.abs(offset))),
                      constraint_noise)
+    elif adaptive:
+        idx, surf = _thin_flat(box, idx, options.surface_adaptive, noise, seed)
     seen = None
     if data.cameras is not None:
         from o3drbf.constraints.visibility import exterior_constraints
@@ -129,3 +138,12 @@ def build_constraints(data: PointSet, options: ConstraintOptions = ConstraintOpt
     pad = 0.05 * float((hi - lo).max())
     return ConstraintSet(constraints, norm, np.asarray(idx), spacing, seen, np.stack([lo - pad, hi + pad]), options.exterior_offset,
                          bool(data.normals_estimated), noise, constraint_noise, moved)
+
+
+def _thin_flat(box: np.ndarray, idx: np.ndarray, tolerance: float, noise: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """The uniform subset ``idx`` thinned where the surface is flat (:func:`o3drbf.constraints.adaptive.adaptive_subset`)."""
+    from o3drbf.constraints.adaptive import MAX_FACTOR, adaptive_subset
+
+    kept = adaptive_subset(box, idx, tolerance, MAX_FACTOR, noise=noise if np.isfinite(noise) else 0.0, seed=seed)
+    log.info("surface_adaptive %g: %d of %d surface constraints kept (fewer where the surface is flat)", tolerance, len(kept), len(idx))
+    return kept, box[kept]

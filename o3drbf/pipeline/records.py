@@ -73,7 +73,8 @@ class ConstraintSet:
     surface_index : (S,) ndarray of int
         Which points of the PointSet are surface constraints.
     spacing : float
-        Mean nearest-neighbour spacing of the surface constraints (box units).
+        Mean nearest-neighbour spacing of the surface constraints (box units;
+        with ``surface_adaptive``, of the uniform subset before it was thinned).
     points_seen_per_camera : list of int or None
     bounds : (2, 3) ndarray
         The extraction box (data coordinates): the points' box padded by 5 %.
