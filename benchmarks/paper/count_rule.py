@@ -112,6 +112,7 @@ def main(argv=None) -> int:
     ap.add_argument("--adaptive", type=float, default=None, help="surface_adaptive tolerance (default: off)")
     ap.add_argument("--max-factor", type=float, default=None, help="o3drbf.constraints.adaptive.MAX_FACTOR (default: the code's)")
     ap.add_argument("--count-from", default=None, metavar="JSONL", help="surface_count per cell from this earlier run's rows")
+    ap.add_argument("--seed", type=int, default=0, help="reconstruct's seed (the scans keep the study's; default %(default)s)")
     ap.add_argument("--select", nargs="*", default=[], metavar="KEY=VALUE", help="run only the cells matching these")
     ap.add_argument("--out", help="JSON-lines file (appended to; an interrupted run resumes)")
     ap.add_argument("--summary", nargs="+", metavar="LABEL=JSONL", help="print the markdown table of these runs (LABEL=JSONL, or a JSONL whose rows have a 'run' field) and stop")
@@ -127,8 +128,8 @@ def main(argv=None) -> int:
     import o3drbf.options as options
     from o3drbf import reconstruct
 
-    if args.rate is None and args.adaptive is None and args.count_from is None:
-        ap.error("give --rate, --adaptive or --count-from")
+    if args.rate is None and args.adaptive is None and args.count_from is None and not args.seed:
+        ap.error("give --rate, --adaptive, --count-from or --seed")
     counts = {}
     if args.count_from is not None:
         counts = {rb._key(r): r["surface_constraints"] for r in map(json.loads, Path(args.count_from).read_text().splitlines())
@@ -155,6 +156,8 @@ def main(argv=None) -> int:
         raw, owner, cams, _ = rb.scan(mesh, int(cell["views"]), cell["noise_pct"], cell["outliers_pct"], 0, cell["misregistration_pct"])
         row = {k: cell[k] for k in ("mesh", "views", "outliers_pct", "noise_pct", "misregistration_pct", "method", "points")}
         row["rate"] = rate
+        if args.seed:
+            row["seed"] = args.seed
         count = "auto"
         if args.count_from is not None:
             if rb._key(cell) not in counts:
@@ -164,7 +167,7 @@ def main(argv=None) -> int:
             row.update(adaptive=args.adaptive, max_factor=adaptive.MAX_FACTOR)
         t = time.perf_counter()
         try:
-            rec = reconstruct(raw, cameras=cams, point_camera=owner, seed=0, surface_adaptive=args.adaptive,
+            rec = reconstruct(raw, cameras=cams, point_camera=owner, seed=args.seed, surface_adaptive=args.adaptive,
                               surface_count=count)
             row.update(surface_constraints=rec.report.surface_constraints, seconds=time.perf_counter() - t,
                        fit_seconds=sum(t.seconds for t in rec.report.stages if t.name == "fit"), **rb.measure(rec.mesh, mesh, 0))
