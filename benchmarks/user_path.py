@@ -76,7 +76,8 @@ def timed(cmd: list[str], env=None) -> dict:
     wall = time.perf_counter() - t0
     m = re.search(r"Maximum resident set size \(kbytes\): (\d+)", proc.stderr)
     rss = int(m.group(1)) / 2**20 if m else float("nan")
-    return {"seconds": wall, "gb": rss, "rc": proc.returncode, "out": proc.stdout[-2000:], "err": proc.stderr[-3000:]}
+    cpu = sum(float(x) for x in re.findall(r"(?:User|System) time \(seconds\): ([\d.]+)", proc.stderr)) if timer else float("nan")
+    return {"seconds": wall, "cpu": cpu, "gb": rss, "rc": proc.returncode, "out": proc.stdout[-2000:], "err": proc.stderr[-3000:]}
 
 
 # --------------------------------------------------------------------------------------
@@ -213,7 +214,7 @@ def run_case(case: dict, folder: Path, env: dict, peers: bool) -> list[dict]:
     if r["rc"] != 0:
         print(r["err"], file=sys.stderr)
     rep = json.loads(report.read_text()) if report.exists() else {}
-    row = {"case": case["name"], "tool": "o3drbf", "seconds": r["seconds"], "gb": r["gb"], "rc": r["rc"],
+    row = {"case": case["name"], "tool": "o3drbf", "seconds": r["seconds"], "cpu": r["cpu"], "gb": r["gb"], "rc": r["rc"],
            "detail": f"{rep.get('surface_constraints', '?')} surface constraints, {rep.get('solver', '?')}, "
                      f"{rep.get('resolution', '?')} cells, {rep.get('triangles', '?')} triangles",
            "stages": rep.get("stages", [])}
@@ -229,7 +230,8 @@ def run_case(case: dict, folder: Path, env: dict, peers: bool) -> list[dict]:
         if pr["rc"] != 0:
             print(pr["err"], file=sys.stderr)
         info = pr["out"].strip().splitlines()[-1] if pr["rc"] == 0 and pr["out"].strip() else "failed"
-        rows.append({"case": case["name"], "tool": label, "seconds": pr["seconds"], "gb": pr["gb"], "rc": pr["rc"], "detail": info})
+        rows.append({"case": case["name"], "tool": label, "seconds": pr["seconds"], "cpu": pr["cpu"], "gb": pr["gb"], "rc": pr["rc"],
+                     "detail": info})
     return rows
 
 
@@ -242,11 +244,11 @@ def ratio(rows: list[dict], case: str, tool: str) -> float | None:
 
 def tables(rows: list[dict], help_seconds: float) -> str:
     """The markdown tables: times, stages, targets."""
-    lines = ["| case | tool | seconds | peak GB | o3drbf / this | notes |", "|---|---|---|---|---|---|"]
+    lines = ["| case | tool | seconds | CPU s | peak GB | o3drbf / this | notes |", "|---|---|---|---|---|---|---|"]
     for r in rows:
         q = ratio(rows, r["case"], r["tool"]) if r["tool"] != "o3drbf" else 1.0
         status = "" if r["rc"] == 0 else f" (exit {r['rc']})"
-        lines.append(f"| {r['case']} | {r['tool']}{status} | {r['seconds']:.1f} | {r['gb']:.2f} | "
+        lines.append(f"| {r['case']} | {r['tool']}{status} | {r['seconds']:.1f} | {r.get('cpu', float('nan')):.1f} | {r['gb']:.2f} | "
                      f"{'-' if q is None else f'{q:.2f}'} | {r['detail']} |")
     lines += ["", f"`o3drbf --help`: {help_seconds:.2f} s", ""]
     mine = [r for r in rows if r["tool"] == "o3drbf" and r["stages"]]

@@ -14,7 +14,7 @@ from o3drbf.rbf.kernels import Kernel, MultiOrder
 from o3drbf.solvers import FAST_EVALUATION_MIN, Refitter, Solution, solve
 from o3drbf.surface import ImplicitSurface
 
-__all__ = ["fit", "surface_of", "check_fit_memory", "EARLY_CHECK_MIN", "EARLY_CHECK_SLACK", "early_fit_check", "fit_surface"]
+__all__ = ["fit", "surface_of", "check_fit_memory", "mesh_cells", "EARLY_CHECK_MIN", "EARLY_CHECK_SLACK", "early_fit_check", "fit_surface"]
 
 log = logging.getLogger("o3drbf")
 
@@ -202,8 +202,16 @@ def early_fit_check(points, options: Options, extract: bool = True, seed: int = 
                             exc.need, limit, fraction=fraction, cli_hint="pass " + " or ".join(hints)) from None
 
 
+def mesh_cells(extract: ExtractOptions, cset: ConstraintSet) -> float:
+    """Mesh cells along the box's longest side for these extraction options: the resolution asked for, the
+    automatic one, or the box's side over a voxel size (data units)."""
+    if extract.voxel_size is not None:
+        return 2.0 / (float(extract.voxel_size) * float(cset.normalization.scale))
+    return float(auto_resolution(cset.spacing) if extract.resolution == "auto" else int(extract.resolution))
+
+
 def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = FitOptions(), *, progress: bool = False,
-                checked: bool = False):
+                checked: bool = False, resolution: float | None = None):
     """Solve for the implicit function; robustly reweighted by default.
 
     Parameters
@@ -214,6 +222,11 @@ def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = F
     progress : bool
     checked : bool
         :func:`check_fit_memory` has passed: the solver does not check again.
+    resolution : float, optional
+        Cells along the box's longest side in the mesh the fit is for (default: the
+        automatic one for the constraint spacing); a fast solve stops where
+        its residual moves the surface by a small fraction of such a cell
+        (:func:`o3drbf.solvers.fast.mesh_tolerance`).
 
     Returns
     -------
@@ -242,6 +255,11 @@ def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = F
     # One factorization for the first fit and every robust refit (Woodbury updates of the dense one).
     session = Refitter(params.kernel, constraints.points, constraints.values, constraints.smoothing, method=options.solver,
                        checked=checked, progress=progress)
+    if session.method == "fast":
+        from o3drbf.solvers.fast.tolerance import mesh_tolerance
+
+        cells = float(resolution) if resolution else auto_resolution(cset.spacing)
+        session.options["rtol"] = mesh_tolerance(constraints.values, 2.0 / cells)  # the box's longest side is 2
 
     def refit(smoothing=None):
         keep, solution = session.solve(smoothing)

@@ -403,3 +403,32 @@ def test_grid_solve_matches_dense():
     f_fast = kernel_sum(kernel, c, sol.weights, x) + sol.poly[0]
     err = np.abs(f_fast - f_dense).max() / np.abs(f_dense).max()
     assert err < 1e-5, f"max relative difference {err:.1e}"
+
+
+def test_mesh_tolerance_moves_the_surface_by_about_the_asked_fraction_of_a_cell():
+    # a fast solve stopped at mesh_tolerance against a tight one (independent truth: rtol 1e-8)
+    n = 8000
+    rng = np.random.default_rng(3)
+    d = rng.standard_normal((n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    surface = np.arange(n) < n - n // 10
+    x = d * np.where(surface, 0.7, 0.8)[:, None]
+    y = np.where(surface, 0.0, 0.1)  # signed distance: |grad f| ~ 1
+    lam = np.where(surface, 1e-5, 2.0)
+    kernel = MultiOrder(10, 0.01)
+    cell = 2.0 / 4096  # a fine mesh: well below the tolerance's cap
+    rtol = fast.mesh_tolerance(y, cell)
+    assert rtol == pytest.approx(fast.MESH_SHIFT * cell * np.sqrt(n) / np.linalg.norm(y))
+    loose = fast.solve(kernel, x, y, lam, rtol=rtol)
+    tight = fast.solve(kernel, x, y, lam, rtol=1e-8, max_iterations=400)
+    assert loose.iterations < tight.iterations
+    from o3drbf.rbf.sums import polynomial_basis
+
+    q = polynomial_basis(x, kernel.polynomial_degree)
+    f_loose = kernel_sum(kernel, x, loose.weights, x) + q @ loose.poly
+    f_tight = kernel_sum(kernel, x, tight.weights, x) + q @ tight.poly
+    shift = np.sqrt(np.mean((f_loose - f_tight)[surface] ** 2)) / cell  # |grad f| ~ 1: a value error is a shift
+    print(f"rtol {rtol:.2e}: {loose.iterations} vs {tight.iterations} iterations, rms shift {shift:.2e} cells")
+    assert shift <= 2 * fast.MESH_SHIFT
+    assert fast.mesh_tolerance(np.zeros(10), cell) == fast.SOLVE_RTOL
+    assert fast.mesh_tolerance(y, 1e3) == fast.RELAX_CAP

@@ -134,10 +134,11 @@ from o3drbf.solvers.fast.neighbours import (
 )
 from o3drbf.solvers.fast.precondition import TwoLevel
 from o3drbf.solvers.fast.solver import SolveSettings, solve
-from o3drbf.solvers.fast.tolerance import DEFAULT_EPS, RELAX_CAP, clip_eps, product_tolerance
+from o3drbf.solvers.fast.tolerance import DEFAULT_EPS, MESH_SHIFT, RELAX_CAP, SOLVE_RTOL, clip_eps, mesh_tolerance, product_tolerance
 
 __all__ = ["FastSum", "TwoLevel", "solve", "SolveSettings", "make_evaluator", "fast_memory", "default_workers", "DEFAULT_EPS",
            "GridSum", "fast_operator", "grid_bytes", "outside_centres", "GRID_BUDGET", "product_tolerance", "check_memory",
            "grid_budget", "memory_plan", "grid_plan", "split_design", "fitting_fraction", "product_neighbours",
            "DIRECT_PAIRS", "HAVE_GRID", "NNZ_BYTES", "PRODUCT_NEIGHBOURS_MAX", "RELAX_CAP", "SPARSE_BUDGET",
-           "clip_eps", "default_neighbours", "fgmres", "long_part", "near_table", "neighbour_radius"]
+           "clip_eps", "default_neighbours", "fgmres", "long_part", "near_table", "neighbour_radius", "mesh_tolerance",
+           "MESH_SHIFT", "SOLVE_RTOL"]

@@ -1,13 +1,22 @@
-"""Tolerances of the fast sums: the default, the relaxation cap, and the products' tolerance for a solve."""
+"""Tolerances of the fast sums: the default, the relaxation cap, the products' tolerance for a solve, and the
+solve's tolerance a mesh can show."""
 
 from __future__ import annotations
 
-__all__ = ["DEFAULT_EPS", "RELAX_CAP", "clip_eps", "product_tolerance"]
+import math
+
+import numpy as np
+
+__all__ = ["DEFAULT_EPS", "RELAX_CAP", "MESH_SHIFT", "SOLVE_RTOL", "clip_eps", "product_tolerance", "mesh_tolerance"]
 
 #: Default relative tolerance of fast sums (evaluation).
 DEFAULT_EPS = 1e-6
 #: Loosest product tolerance the relaxation may reach.
 RELAX_CAP = 1e-3
+#: The fast solve's relative residual when no mesh sets it.
+SOLVE_RTOL = 1e-6
+#: The root-mean-square surface shift, in mesh cells, that :func:`mesh_tolerance` allows the solve's residual.
+MESH_SHIFT = 0.01
 
 
 def clip_eps(eps: float) -> float:
@@ -18,3 +27,47 @@ def clip_eps(eps: float) -> float:
 def product_tolerance(rtol: float) -> float:
     """The fast products' tolerance :func:`o3drbf.solvers.fast.solve` uses for a relative residual ``rtol``."""
     return clip_eps(float(rtol) / 10.0)
+
+
+def mesh_tolerance(values, cell: float, shift: float = MESH_SHIFT, gradient: float = 1.0) -> float:
+    """The relative residual at which a fit's surface moves by about ``shift`` mesh cells (root mean square).
+
+    A residual ``r`` of the system (``||r|| = rtol ||values||``) changes the
+    fitted function at constraint i by about ``r_i`` (the smoothing of the
+    surface constraints is small), which moves the zero level set there by
+    ``r_i / |grad f|``; spread over the N constraints the root-mean-square
+    shift is ``rtol ||values|| / (sqrt(N) |grad f|)``.  Setting that to
+    ``shift * cell`` gives the tolerance, clipped to [``SOLVE_RTOL``,
+    ``RELAX_CAP``] (beyond the cap the relaxed products would be looser
+    than the residual asked for).
+
+    Parameters
+    ----------
+    values : (N,) array_like
+        The constraints' target values.
+    cell : float
+        The mesh cell, in the units of the values (the box).
+    shift : float
+        Allowed root-mean-square shift, in cells.
+    gradient : float
+        ``|grad f|`` near the surface (about 1 in the box: the values are
+        signed distances).
+
+    Returns
+    -------
+    float
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from o3drbf.solvers.fast import mesh_tolerance
+    >>> y = np.r_[np.zeros(9900), np.full(100, 0.1)]  # ||y|| = 1, sqrt(N) = 100
+    >>> round(mesh_tolerance(y, 0.01), 12)  # 0.01 cells of 0.01 times 100
+    0.0001
+    """
+    v = np.asarray(values, dtype=float)
+    norm = float(np.linalg.norm(v))
+    if not (norm > 0 and cell > 0 and math.isfinite(cell)):
+        return SOLVE_RTOL
+    rtol = shift * float(cell) * float(gradient) * math.sqrt(len(v)) / norm
+    return float(min(max(rtol, SOLVE_RTOL), RELAX_CAP))
