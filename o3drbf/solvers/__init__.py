@@ -194,15 +194,18 @@ def system_inputs(centres, values, smoothing, method: str = "auto") -> tuple[np.
 
 
 def solve_fast(kernel: Kernel, centres, y, lam, rtol: float | None = None, max_iterations: int = 1000, progress: bool = False,
-               backend: str = "auto", operator=None, x0=None) -> Solution:
+               backend: str = "auto", operator=None, x0=None, preconditioner=None, keep_preconditioner: bool = False) -> Solution:
     """The fast method of :func:`solve` (validated inputs): :func:`o3drbf.solvers.fast.solve` with ``rtol``
-    1e-6 by default and at most 200 iterations, logged; ``operator`` (a prebuilt product) and ``x0`` (a start)
-    are passed on."""
+    1e-6 by default and at most 200 iterations, logged; ``operator`` (a prebuilt product), ``x0`` (a start)
+    and ``preconditioner`` (an earlier solve's ``TwoLevel``, reused) are passed on.  The preconditioner used
+    stays in ``info["preconditioner_object"]`` only with ``keep_preconditioner`` (it holds memory)."""
     from o3drbf.solvers import fast
 
     t0 = time.perf_counter()
     sol = fast.solve(kernel, centres, y, lam, rtol=1e-6 if rtol is None else rtol, max_iterations=min(max_iterations, 200),
-                     progress=progress, backend=backend, operator=operator, x0=x0)
+                     progress=progress, backend=backend, operator=operator, x0=x0, preconditioner_object=preconditioner)
+    if not keep_preconditioner:
+        sol.info.pop("preconditioner_object", None)
     split = sol.info["split"]
     log.info(
         "solver: fast products (%s) + two-level preconditioned FGMRES, %d constraints: %d iterations, "
@@ -256,7 +259,9 @@ class Refitter:
     (:class:`o3drbf.solvers.dense.DenseFactor`): a robust refit that
     down-weights a few constraints costs a few triangular solves, not a new
     factorization.  When it is fast, the products are built once for all
-    the centres and every refit starts FGMRES from the previous solution; a
+    the centres and every refit starts FGMRES from the previous solution,
+    preconditioned by the first solve's preconditioner set to the new
+    smoothing (:meth:`o3drbf.solvers.fast.TwoLevel.set_smoothing`); a
     left-out constraint keeps its centre with the smoothing
     ``DROPPED_SMOOTHING`` times the largest finite one (its weight comes out
     ~1e-6 of its neighbours' and is then removed).  Otherwise (the iterative
@@ -295,6 +300,7 @@ class Refitter:
         self.factor = None
         self.operator = None  # the fast method's products, built at its first solve
         self.previous = None  # the fast method's last [w; p]
+        self.preconditioner = None  # the fast method's TwoLevel, reset to each new smoothing
         self.checked = bool(checked)
         limit = memory_limit_or_default(options.get("memory_limit"))
         self.method = method
@@ -361,8 +367,10 @@ class Refitter:
         finite = lam[keep]
         big = DROPPED_SMOOTHING * max(float(finite.max()) if finite.size else 1.0, 1e-12)
         sol = solve_fast(self.kernel, self.centres, self.values, np.where(keep, lam, big), o.get("rtol"), o.get("max_iterations", 1000),
-                         o.get("progress", False), o.get("backend", "auto"), operator=self.operator, x0=self.previous)
+                         o.get("progress", False), o.get("backend", "auto"), operator=self.operator, x0=self.previous,
+                         preconditioner=self.preconditioner, keep_preconditioner=True)
         self.previous = np.concatenate([sol.weights, sol.poly])
+        self.preconditioner = sol.info.pop("preconditioner_object", None)
         if keep.all():
             return sol
         return Solution(sol.weights[keep], sol.poly, sol.method, sol.residual, sol.seconds, sol.iterations, dict(sol.info, left_out=int((~keep).sum())))

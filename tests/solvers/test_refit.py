@@ -181,3 +181,31 @@ def test_lower_kernel_matrix_is_the_full_matrix_lower_triangle(n):
     np.testing.assert_allclose(full, full.T, rtol=0, atol=0)
     with pytest.raises(ValueError, match="omit y"):
         kernel_matrix(kernel, x, x, lower=True)
+
+
+def test_fast_refits_reuse_the_first_preconditioner_set_to_the_new_smoothing():
+    from o3drbf.solvers.fast import TwoLevel, fast_operator
+
+    kernel = MultiOrder(10, 0.01)
+    x, y, lam0 = problem(n=8000, seed=2)
+    lam0 = np.where(y == 0, 1e-5, 2.0)
+    session = Refitter(kernel, x, y, lam0, method="fast")
+    _, first = session.solve()
+    prec = session.preconditioner
+    assert prec is not None and "preconditioner_object" not in first.info
+    lam = lam0.copy()
+    lam[[10, 11, 400]] *= 1e3
+    keep, sol = session.solve(lam)
+    assert session.preconditioner is prec and sol.residual <= 1e-6
+    # its local step is the one a new preconditioner for that smoothing builds (independent: built afresh)
+    lam[[5, 2000]] = 1e6  # a coarse centre's too (the coarse level factored again)
+    assert np.isin([5, 2000], prec.coarse).any()
+    prec.set_smoothing(lam)
+    fresh = TwoLevel(prec.fast, lam)
+    assert np.array_equal(prec.near_diag, fresh.near_diag)
+    assert abs(prec.near - fresh.near).max() == 0
+    r = np.random.default_rng(4).normal(size=len(x))
+    assert np.abs(prec(r) - fresh(r)).max() <= 1e-10 * np.abs(fresh(r)).max()
+    # a plain solve keeps no preconditioner (it would hold its memory)
+    op = fast_operator(kernel, x, eps=1e-7)
+    assert "preconditioner_object" not in solve(kernel, x, y, lam0, method="fast").info and op.n == len(x)

@@ -168,10 +168,11 @@ class TwoLevel:
         k = min(neighbours, n - 1)
         if k >= 1:
             self.near, radius, phir = tapered_near(kernel, x, fast.tree, k, lambda phir: damping * (fast.phi0 - phir) + self.lam)
-            diag = damping * (fast.phi0 - phir) + self.lam
+            self.diag_base = damping * (fast.phi0 - phir)
         else:
-            radius, diag = 0.0, fast.phi0 + self.lam
-            self.near = sp.diags(diag).tocsr()
+            radius, self.diag_base = 0.0, fast.phi0
+            self.near = sp.diags(self.diag_base + self.lam).tocsr()
+        diag = self.diag_base + self.lam
         self.near_diag = np.asarray(diag, dtype=float)
         self.radius = radius
         # Coarse level.
@@ -215,6 +216,30 @@ class TwoLevel:
         }
         if self.inner_level is not None:
             self.info["inner"] = self.inner_level.info
+
+    def set_smoothing(self, lam) -> None:
+        """Precondition ``Phi + diag(lam)`` for a new ``lam`` (in place), as a new :class:`TwoLevel` would.
+
+        The coarse centres, the near field's pattern and the coarse-to-fine
+        block are kept (the costly parts); the local step's diagonal follows
+        ``lam``, and the coarse level is factored again (or, nested, set to it
+        in turn) only when ``lam`` changed at a coarse centre.
+        """
+        lam = np.broadcast_to(np.asarray(lam, dtype=float), self.lam.shape).copy()
+        coarse_changed = not np.array_equal(lam[self.coarse], self.lam[self.coarse])
+        diag = self.diag_base + lam
+        _set_diagonal(self.near.indptr, self.near.indices, self.near.data, np.ascontiguousarray(diag))
+        self.near_diag, self.lam = diag, lam
+        if not coarse_changed:
+            return
+        if self.inner_level is not None:
+            self._sub_lam = lam[self.coarse]
+            self.inner_level.set_smoothing(self._sub_lam)
+        else:
+            self.factor = None  # (its memory freed before the new one)
+            acc = kernel_matrix(self.fast.kernel, self.fast.centres[self.coarse])
+            acc[np.diag_indices(len(self.coarse))] += lam[self.coarse]
+            self.factor = sla.cho_factor(acc, lower=True, overwrite_a=True, check_finite=False)
 
     def _coarse_to_fine(self, zc):
         """(Phi + Lambda)[:, C] z_C."""

@@ -37,7 +37,7 @@ class SolveSettings:
 
 
 def solve(kernel: Kernel, centres, y, lam, settings: SolveSettings | None = None, *, progress: bool = False, operator: FastSum | None = None,
-          x0=None, **overrides) -> Solution:
+          x0=None, preconditioner_object: TwoLevel | None = None, **overrides) -> Solution:
     """Solve ``[Phi + diag(lam), Q; Q^T, 0] [w; p] = [y; 0]`` with fast products.
 
     Parameters
@@ -73,12 +73,17 @@ def solve(kernel: Kernel, centres, y, lam, settings: SolveSettings | None = None
     x0 : (N + M,) array, optional
         Starting guess ``[w; p]`` (e.g. the solution of a nearby system: a
         robust refit starts from the fit before it).
+    preconditioner_object : TwoLevel, optional
+        A preconditioner built on ``operator`` for an earlier smoothing (a
+        robust refit's): set to ``lam`` (:meth:`TwoLevel.set_smoothing`)
+        and used instead of a new one.
 
     Returns
     -------
     Solution
         ``info`` holds the split, the preconditioner's sizes, setup and solve
-        seconds, the residual history and ``constraint`` = ``|Q^T w|``.
+        seconds, the residual history, ``constraint`` = ``|Q^T w|`` and
+        ``preconditioner_object`` (the :class:`TwoLevel` used).
 
     Warns
     -----
@@ -109,7 +114,11 @@ def solve(kernel: Kernel, centres, y, lam, settings: SolveSettings | None = None
     m = q.shape[1]
     t_setup = time.perf_counter()
     fast = fast_operator(kernel, centres, eps=eps, backend=backend, memory_limit=memory_limit) if operator is None else operator
-    prec_a = TwoLevel(fast, lam, **(preconditioner or {}))
+    if preconditioner_object is not None and preconditioner_object.fast is fast:
+        prec_a = preconditioner_object
+        prec_a.set_smoothing(lam)
+    else:
+        prec_a = TwoLevel(fast, lam, **(preconditioner or {}))
     # Constraint preconditioner: exact elimination of p with M ~ (Phi + Lambda)^{-1}.
     mq = np.column_stack([prec_a(q[:, k]) for k in range(m)]) if m else np.zeros((n, 0))
     s = q.T @ mq
@@ -148,6 +157,7 @@ def solve(kernel: Kernel, centres, y, lam, settings: SolveSettings | None = None
         "history": history,
         "constraint": float(np.abs(q.T @ w).max()) if m else 0.0,
         "converged": res <= rtol,
+        "preconditioner_object": prec_a,
     }
     if res > rtol:
         warnings.warn(
