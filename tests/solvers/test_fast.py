@@ -416,7 +416,7 @@ def test_mesh_tolerance_moves_the_surface_by_about_the_asked_fraction_of_a_cell(
     y = np.where(surface, 0.0, 0.1)  # signed distance: |grad f| ~ 1
     lam = np.where(surface, 1e-5, 2.0)
     kernel = MultiOrder(10, 0.01)
-    cell = 2.0 / 4096  # a fine mesh: well below the tolerance's cap
+    cell = 2.0 / 512  # (below the tolerance's cap)
     rtol = fast.mesh_tolerance(y, cell)
     assert rtol == pytest.approx(fast.MESH_SHIFT * cell * np.sqrt(n) / np.linalg.norm(y))
     loose = fast.solve(kernel, x, y, lam, rtol=rtol)
