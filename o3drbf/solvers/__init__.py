@@ -194,24 +194,27 @@ def system_inputs(centres, values, smoothing, method: str = "auto") -> tuple[np.
 
 
 def solve_fast(kernel: Kernel, centres, y, lam, rtol: float | None = None, max_iterations: int = 1000, progress: bool = False,
-               backend: str = "auto", operator=None, x0=None, preconditioner=None, keep_preconditioner: bool = False) -> Solution:
+               backend: str = "auto", operator=None, start: dict | None = None) -> Solution:
     """The fast method of :func:`solve` (validated inputs): :func:`o3drbf.solvers.fast.solve` with ``rtol``
-    1e-6 by default and at most 200 iterations, logged; ``operator`` (a prebuilt product), ``x0`` (a start)
-    and ``preconditioner`` (an earlier solve's ``TwoLevel``, reused) are passed on.  The preconditioner used
-    stays in ``info["preconditioner_object"]`` only with ``keep_preconditioner`` (it holds memory)."""
+    1e-6 by default and at most 200 iterations, logged; ``operator`` (a prebuilt product) is passed on, and
+    so are ``start["x0"]`` (a starting ``[w; p]``) and ``start["preconditioner"]`` (an earlier solve's
+    ``TwoLevel``, reused) when given; the preconditioner used is put back in ``start`` (never in the
+    solution's ``info``: it holds memory)."""
     from o3drbf.solvers import fast
 
     t0 = time.perf_counter()
     sol = fast.solve(kernel, centres, y, lam, rtol=1e-6 if rtol is None else rtol, max_iterations=min(max_iterations, 200),
-                     progress=progress, backend=backend, operator=operator, x0=x0, preconditioner_object=preconditioner)
-    if not keep_preconditioner:
-        sol.info.pop("preconditioner_object", None)
+                     progress=progress, backend=backend, operator=operator, x0=(start or {}).get("x0"),
+                     preconditioner_object=(start or {}).get("preconditioner"))
+    used = sol.info.pop("preconditioner_object", None)
+    if start is not None:
+        start["preconditioner"] = used
     split = sol.info["split"]
     log.info(
         "solver: fast products (%s) + two-level preconditioned FGMRES, %d constraints: %d iterations, "
         "residual %.1e, %.1f s%s",
         split.get("mode") or split.get("split"), len(centres), sol.iterations, sol.residual, time.perf_counter() - t0,
-        "" if x0 is None else " (from the previous solution)",
+        "" if (start or {}).get("x0") is None else " (from the previous solution)",
     )
     sol.seconds = time.perf_counter() - t0
     return sol
@@ -299,8 +302,7 @@ class Refitter:
         self.q = q
         self.factor = None
         self.operator = None  # the fast method's products, built at its first solve
-        self.previous = None  # the fast method's last [w; p]
-        self.preconditioner = None  # the fast method's TwoLevel, reset to each new smoothing
+        self.start = {}  # the fast method's last [w; p] ("x0") and its TwoLevel ("preconditioner"), set to each new smoothing
         self.checked = bool(checked)
         limit = memory_limit_or_default(options.get("memory_limit"))
         self.method = method
@@ -367,10 +369,8 @@ class Refitter:
         finite = lam[keep]
         big = DROPPED_SMOOTHING * max(float(finite.max()) if finite.size else 1.0, 1e-12)
         sol = solve_fast(self.kernel, self.centres, self.values, np.where(keep, lam, big), o.get("rtol"), o.get("max_iterations", 1000),
-                         o.get("progress", False), o.get("backend", "auto"), operator=self.operator, x0=self.previous,
-                         preconditioner=self.preconditioner, keep_preconditioner=True)
-        self.previous = np.concatenate([sol.weights, sol.poly])
-        self.preconditioner = sol.info.pop("preconditioner_object", None)
+                         o.get("progress", False), o.get("backend", "auto"), operator=self.operator, start=self.start)
+        self.start["x0"] = np.concatenate([sol.weights, sol.poly])
         if keep.all():
             return sol
         return Solution(sol.weights[keep], sol.poly, sol.method, sol.residual, sol.seconds, sol.iterations, dict(sol.info, left_out=int((~keep).sum())))

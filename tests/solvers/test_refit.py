@@ -191,12 +191,12 @@ def test_fast_refits_reuse_the_first_preconditioner_set_to_the_new_smoothing():
     lam0 = np.where(y == 0, 1e-5, 2.0)
     session = Refitter(kernel, x, y, lam0, method="fast")
     _, first = session.solve()
-    prec = session.preconditioner
+    prec = session.start["preconditioner"]
     assert prec is not None and "preconditioner_object" not in first.info
     lam = lam0.copy()
     lam[[10, 11, 400]] *= 1e3
     keep, sol = session.solve(lam)
-    assert session.preconditioner is prec and sol.residual <= 1e-6
+    assert session.start["preconditioner"] is prec and sol.residual <= 1e-6
     # its local step is the one a new preconditioner for that smoothing builds (independent: built afresh)
     lam[[5, 2000]] = 1e6  # a coarse centre's too (the coarse level factored again)
     assert np.isin([5, 2000], prec.coarse).any()
