@@ -111,6 +111,7 @@ def run_one(args) -> dict:
     pre = json.loads(args.preconditioner) if args.preconditioner else None
     sol = fast.solve(kernel, c, y, lam, rtol=args.rtol, max_iterations=args.max_iterations, backend=args.backend,
                      preconditioner=pre)
+    sol.info.pop("preconditioner_object", None)  # (the fit's memory, not the mesh's)
     res["fit_s"] = time.perf_counter() - t
     res["fit_cpu_s"] = time.process_time() - cpu0
     res["backend"] = sol.info["split"].get("split", sol.info["split"].get("mode", "?"))[:4]
