@@ -262,9 +262,11 @@ class Refitter:
     (:class:`o3drbf.solvers.dense.DenseFactor`): a robust refit that
     down-weights a few constraints costs a few triangular solves, not a new
     factorization.  When it is fast, the products are built once for all
-    the centres and every refit starts FGMRES from the previous solution,
-    preconditioned by the first solve's preconditioner set to the new
-    smoothing (:meth:`o3drbf.solvers.fast.TwoLevel.set_smoothing`); a
+    the centres and every refit starts FGMRES from the previous solution;
+    from the second refit on, it is preconditioned by the first refit's
+    preconditioner set to the new smoothing
+    (:meth:`o3drbf.solvers.fast.TwoLevel.set_smoothing`: the first solve's is
+    freed, as most fits have no refit, so that they hold no more memory); a
     left-out constraint keeps its centre with the smoothing
     ``DROPPED_SMOOTHING`` times the largest finite one (its weight comes out
     ~1e-6 of its neighbours' and is then removed).  Otherwise (the iterative
@@ -370,6 +372,8 @@ class Refitter:
         big = DROPPED_SMOOTHING * max(float(finite.max()) if finite.size else 1.0, 1e-12)
         sol = solve_fast(self.kernel, self.centres, self.values, np.where(keep, lam, big), o.get("rtol"), o.get("max_iterations", 1000),
                          o.get("progress", False), o.get("backend", "auto"), operator=self.operator, start=self.start)
+        if "x0" not in self.start:  # the first solve: no refit may follow, so its preconditioner's memory is freed
+            self.start.pop("preconditioner", None)
         self.start["x0"] = np.concatenate([sol.weights, sol.poly])
         if keep.all():
             return sol
