@@ -12,10 +12,10 @@ import scipy.fft as _sfft
 from scipy.spatial import cKDTree
 
 from o3drbf.rbf.kernels import Kernel, MultiOrder
-from o3drbf.rbf.sums import kernel_sum
+from o3drbf.rbf.sums import kernel_matrix, kernel_sum
 from o3drbf.solvers.base import memory_limit_or_default
 from o3drbf.solvers.fast.fmm import FastSum
-from o3drbf.solvers.fast.neighbours import (HAVE_GRID, CellList, default_neighbours, neighbour_radius, njit, prange, product_neighbours,
+from o3drbf.solvers.fast.neighbours import (HAVE_GRID, CellList, csr_matvec, default_neighbours, neighbour_radius, njit, prange, product_neighbours,
                                             store_near)
 from o3drbf.solvers.fast.tolerance import DEFAULT_EPS, clip_eps
 
@@ -52,26 +52,49 @@ def long_part(kernel, r, sigma, extra=0.0):
     return out.real
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _spread(pts, w, origin, h, s, half, grid):
+    """Spread ``w`` onto ``grid`` with the Gaussian stencil, in parallel over slabs along x.
+
+    Slabs of ``W = 2 half + 1`` nodes: a point's stencil starts in its slab and reaches at most into
+    the next one, so the even slabs are spread at the same time, then the odd ones (no two threads
+    add to one node).  Each node gets its sums in the same order whatever the thread count."""
     W = 2 * half + 1
     c = 1.0 / ((2 * math.pi) ** 1.5 * s ** 3)
     inv = 1.0 / (2 * s * s)
-    wx = np.empty(W); wy = np.empty(W); wz = np.empty(W)
-    for p in range(pts.shape[0]):
-        fx = (pts[p, 0] - origin[0]) / h; fy = (pts[p, 1] - origin[1]) / h; fz = (pts[p, 2] - origin[2]) / h
-        ix = int(math.floor(fx + 0.5)) - half; iy = int(math.floor(fy + 0.5)) - half; iz = int(math.floor(fz + 0.5)) - half
-        for a in range(W):
-            d = (ix + a - fx) * h; wx[a] = math.exp(-d * d * inv)
-            d = (iy + a - fy) * h; wy[a] = math.exp(-d * d * inv)
-            d = (iz + a - fz) * h; wz[a] = math.exp(-d * d * inv)
-        wp = w[p] * c
-        for a in range(W):
-            va = wp * wx[a]
-            for b in range(W):
-                vb = va * wy[b]
-                for q in range(W):
-                    grid[ix + a, iy + b, iz + q] += vb * wz[q]
+    n = pts.shape[0]
+    nslab = grid.shape[0] // W + 1
+    slab = np.empty(n, np.int64)
+    count = np.zeros(nslab + 1, np.int64)
+    for p in range(n):
+        ix = int(math.floor((pts[p, 0] - origin[0]) / h + 0.5)) - half
+        slab[p] = min(max(ix // W, 0), nslab - 1)
+        count[slab[p] + 1] += 1
+    start = np.cumsum(count)
+    fill = start[:-1].copy()
+    order = np.empty(n, np.int64)
+    for p in range(n):
+        order[fill[slab[p]]] = p
+        fill[slab[p]] += 1
+    for phase in range(2):
+        for t in prange((nslab - phase + 1) // 2):
+            sl = 2 * t + phase
+            wx = np.empty(W); wy = np.empty(W); wz = np.empty(W)
+            for idx in range(start[sl], start[sl + 1]):
+                p = order[idx]
+                fx = (pts[p, 0] - origin[0]) / h; fy = (pts[p, 1] - origin[1]) / h; fz = (pts[p, 2] - origin[2]) / h
+                ix = int(math.floor(fx + 0.5)) - half; iy = int(math.floor(fy + 0.5)) - half; iz = int(math.floor(fz + 0.5)) - half
+                for a in range(W):
+                    d = (ix + a - fx) * h; wx[a] = math.exp(-d * d * inv)
+                    d = (iy + a - fy) * h; wy[a] = math.exp(-d * d * inv)
+                    d = (iz + a - fz) * h; wz[a] = math.exp(-d * d * inv)
+                wp = w[p] * c
+                for a in range(W):
+                    va = wp * wx[a]
+                    for b in range(W):
+                        vb = va * wy[b]
+                        for q in range(W):
+                            grid[ix + a, iy + b, iz + q] += vb * wz[q]
 
 
 @njit(cache=True, parallel=True)
@@ -185,8 +208,9 @@ class Mesh:
     output cropped back axis by axis; K is even along every axis, so its
     transform is real and even and one octant of it is kept."""
 
-    #: Bytes of work arrays a slab of the last transform may take.
-    SLAB_BYTES = 64 * 2**20
+    #: Bytes of work arrays a slab of the last transform may take (small, so that a slab's padding,
+    #: transforms and product stay in the cores' caches).
+    SLAB_BYTES = 4 * 2**20
 
     def __init__(self, lo, hi, h, s, half, ktable, dtype=np.float64):
         self.h, self.s, self.half, self.dtype = h, s, half, dtype
@@ -433,7 +457,7 @@ class GridSum:
         """``outc += near @ wc`` (core centres): the stored matrix, or the cell-list sum from ``cells``
         (default all core centres; ``wc`` in their order) at every core centre."""
         if cells is None and self.store:
-            outc += self.near @ wc
+            csr_matvec(self.near, wc, outc)
             return
         if cells is None:  # sources = targets: each pair once
             outc += self.cells.self_sum(wc, self.tab, self.dr)
@@ -454,6 +478,7 @@ class GridSum:
                 if tol not in tiers:
                     tiers[tol] = GridSum(self.kernel, self.centres, eps=tol, radius=self.tier_radius(tol),
                                          tree=self.tree, outside=self.outside, budget=self._fixed_budget, store=self.store)
+                    tiers[tol]._outside_held = self.__dict__.setdefault("_outside_held", [])  # the same far block
                 return tiers[tol]
         return self
 
@@ -480,9 +505,32 @@ class GridSum:
         # The far centres: summed directly (few of them), both ways.
         out = np.empty(self.n)
         o = self.outside
-        out[self._core] = outc + kernel_sum(self.kernel, self.centres[o], w[o], self._cc)
-        out[o] = kernel_sum(self.kernel, self.centres, w, self.centres[o])
+        block = self._outside_block()
+        if block is None:
+            out[self._core] = outc + kernel_sum(self.kernel, self.centres[o], w[o], self._cc)
+            out[o] = kernel_sum(self.kernel, self.centres, w, self.centres[o])
+            return out
+        to_core, among = block
+        out[self._core] = outc + to_core @ w[o]
+        out[o] = wc @ to_core + among @ w[o]
         return out
+
+    #: Bytes of the stored kernel block between the grid's centres and the far ones it leaves out
+    #: (:meth:`_outside_block`); above it, the far centres are summed directly at every product.
+    OUTSIDE_BLOCK_BYTES = 256 * 2**20
+
+    def _outside_block(self):
+        """``(phi(core centres, far centres), phi(far, far))``, built on first use and shared with the looser
+        companions (same centres), or None when it would exceed :attr:`OUTSIDE_BLOCK_BYTES`."""
+        held = self.__dict__.setdefault("_outside_held", [])
+        if not held:
+            o = self.outside
+            if len(self._cc) * len(o) * 8 > self.OUTSIDE_BLOCK_BYTES:
+                held.append(None)
+            else:
+                far = self.centres[o]
+                held.append((kernel_matrix(self.kernel, self._cc, far, order="C"), kernel_matrix(self.kernel, far, order="C")))
+        return held[0]
 
     def evaluate(self, w, targets, gradient: bool = False, eps: float | None = None):
         """sum_j w_j phi(|x - c_j|) (and its gradient) at arbitrary targets.
@@ -592,6 +640,7 @@ class GridSum:
         else:
             cmask = self._core_pos[subset] >= 0
             csub, osub = self._core_pos[subset[cmask]], subset[~cmask]
+            far_pos = np.searchsorted(self.outside, osub)  # osub's places among the far centres
         cache = {}
 
         def apply(w, eps=None):
@@ -609,7 +658,7 @@ class GridSum:
                 u = op.mesh.potential(pts, np.ascontiguousarray(wc[pos]))
                 outc[op._perm] = op.mesh.gather(u, op._sorted, False)
                 if op.store:
-                    outc += cols @ wc
+                    csr_matvec(cols, wc, outc)
                 else:
                     op._add_near(wc, outc, cells=cols)
             else:
@@ -618,10 +667,19 @@ class GridSum:
                 return outc
             out = np.zeros(self.n)
             out[self._core] = outc
-            if len(osub):
-                out += kernel_sum(self.kernel, self.centres[osub], w[~cmask], self.centres)
             o = self.outside
-            out[o] = kernel_sum(self.kernel, self.centres[subset], w, self.centres[o])
+            block = self._outside_block()
+            if block is None:
+                if len(osub):
+                    out += kernel_sum(self.kernel, self.centres[osub], w[~cmask], self.centres)
+                out[o] = kernel_sum(self.kernel, self.centres[subset], w, self.centres[o])
+                return out
+            to_core, among = block
+            wo = np.zeros(len(o))
+            if len(osub):
+                wo[far_pos] = w[~cmask]
+                out[self._core] += to_core @ wo
+            out[o] = wc @ to_core[csub] + among @ wo
             return out
 
         return apply

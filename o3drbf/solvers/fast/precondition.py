@@ -15,7 +15,7 @@ from o3drbf.rbf.sums import kernel_matrix
 from o3drbf.solvers.fast.fgmres import fgmres
 from o3drbf.solvers.fast.fmm import FastSum
 from o3drbf.solvers.fast.grid import GridSum, fast_operator
-from o3drbf.solvers.fast.neighbours import CellList, njit
+from o3drbf.solvers.fast.neighbours import CellList, csr_matvec, njit
 
 __all__ = ["TwoLevel", "TwoLevelSettings"]
 
@@ -284,7 +284,7 @@ def _cg(a, diag, b, steps):
     if rz == 0:
         return x
     for _ in range(steps):
-        ap = a @ p
+        ap = csr_matvec(a, p) if sp.isspmatrix_csr(a) else a @ p
         alpha = rz / (p @ ap)
         x += alpha * p
         r -= alpha * ap

@@ -1,0 +1,87 @@
+"""The compiled kernels under the grid products: spreading, the parallel sparse product, the far block."""
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+numba = pytest.importorskip("numba")
+
+from o3drbf.rbf.kernels import MultiOrder  # noqa: E402
+from o3drbf.rbf.sums import kernel_matrix  # noqa: E402
+from o3drbf.solvers import fast  # noqa: E402
+from o3drbf.solvers.fast.grid import _spread  # noqa: E402
+from o3drbf.solvers.fast.neighbours import csr_matvec  # noqa: E402
+
+
+def spread_reference(pts, w, origin, h, s, half, shape):
+    """Each point's Gaussian stencil added node by node (NumPy, no slabs)."""
+    grid = np.zeros(shape)
+    c = 1.0 / ((2 * np.pi) ** 1.5 * s**3)
+    for p, wp in zip(pts, w):
+        f = (p - origin) / h
+        i0 = np.floor(f + 0.5).astype(int) - half
+        idx = [np.arange(i0[a], i0[a] + 2 * half + 1) for a in range(3)]
+        g = [np.exp(-((idx[a] - f[a]) * h) ** 2 / (2 * s * s)) for a in range(3)]
+        grid[np.ix_(*idx)] += c * wp * g[0][:, None, None] * g[1][None, :, None] * g[2][None, None, :]
+    return grid
+
+
+def test_spread_by_slabs_matches_the_stencil_sum_and_not_the_thread_count():
+    """Points over many slabs along x (and in random order) land where their stencils say, to rounding,
+    and the slab order makes the grid bit-for-bit the same on one thread and on all."""
+    rng = np.random.default_rng(0)
+    half, h, s = 3, 0.1, 0.15
+    shape = (64, 20, 20)
+    origin = np.zeros(3)
+    lo = (half + 1) * h
+    pts = np.column_stack([rng.uniform(lo, (shape[i] - half - 2) * h, 700) for i in range(3)])
+    w = rng.normal(size=len(pts))
+    ref = spread_reference(pts, w, origin, h, s, half, shape)
+    got = np.zeros(shape)
+    _spread(pts, w, origin, h, s, half, got)
+    assert np.abs(got - ref).max() < 1e-12 * np.abs(ref).max()
+    threads = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = np.zeros(shape)
+        _spread(pts, w, origin, h, s, half, one)
+    finally:
+        numba.set_num_threads(threads)
+    assert np.array_equal(one, got)
+
+
+def test_csr_matvec_is_scipys_product_and_adds_in_place():
+    a = sp.random(300, 200, density=0.05, format="csr", random_state=1)
+    x = np.random.default_rng(2).normal(size=200)
+    assert np.allclose(csr_matvec(a, x), a @ x, rtol=1e-14, atol=1e-14)
+    out = np.ones(300)
+    assert csr_matvec(a, x, out) is out
+    assert np.allclose(out, 1.0 + a @ x, rtol=1e-14, atol=1e-14)
+
+
+def test_far_centres_block_and_direct_sums_agree_with_dense():
+    """The stored block between the grid's centres and the far ones (the exterior sphere) and the
+    direct sums that replace it when it is too big give the same products, and the dense one."""
+    kernel = MultiOrder(10.0, 0.01)
+    rng = np.random.default_rng(3)
+    core = rng.uniform(-0.5, 0.5, (2000, 3))
+    far = 3.0 * rng.normal(size=(12, 3))
+    far = 4.0 * far / np.linalg.norm(far, axis=1, keepdims=True)
+    c = np.vstack([core[:1000], far[:6], core[1000:], far[6:]])  # far centres among the others
+    a = kernel_matrix(kernel, c)
+    block = fast.GridSum(kernel, c, eps=1e-7)
+    direct = fast.GridSum(kernel, c, eps=1e-7)
+    direct.OUTSIDE_BLOCK_BYTES = 0
+    assert len(block.outside) == 12 and block._outside_block() is not None and direct._outside_block() is None
+    w = rng.normal(size=len(c))
+    ref = a @ w
+    for e in (None, 1e-3):
+        got, want = block.matvec(w, eps=e), direct.matvec(w, eps=e)
+        assert np.linalg.norm(got - want) / np.linalg.norm(want) < 1e-12
+        assert np.linalg.norm(got - ref) / np.linalg.norm(ref) < (e or 1e-7)
+    subset = np.r_[rng.choice(1000, 200, replace=False), 1000, 1003, 2006 + np.arange(6)]
+    z = rng.normal(size=len(subset))
+    ref = a[:, subset] @ z
+    got, want = block.from_subset(subset)(z), direct.from_subset(subset)(z)
+    assert np.linalg.norm(got - want) / np.linalg.norm(want) < 1e-12
+    assert np.linalg.norm(got - ref) / np.linalg.norm(ref) < 1e-7
