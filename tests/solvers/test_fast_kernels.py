@@ -85,3 +85,33 @@ def test_far_centres_block_and_direct_sums_agree_with_dense():
     got, want = block.from_subset(subset)(z), direct.from_subset(subset)(z)
     assert np.linalg.norm(got - want) / np.linalg.norm(want) < 1e-12
     assert np.linalg.norm(got - ref) / np.linalg.norm(ref) < 1e-7
+
+
+def test_restricted_near_field_is_the_smaller_radius_cell_list_matrix():
+    """A companion's near field cut from the product's (larger radius) has exactly the entries, and
+    values, of a fresh cell-list build at the smaller radius."""
+    from o3drbf.solvers.fast.neighbours import CellList, restrict_near
+
+    pts = np.random.default_rng(4).uniform(-1, 1, (3000, 3))
+    tab = np.cos(np.linspace(0, 3, 4001))
+    dr = 0.5 / 4000
+    big = CellList(pts, 0.3).matrix(pts, tab, dr)
+    small = CellList(pts, 0.17).matrix(pts, tab, dr)
+    cut = restrict_near(big, pts, 0.17, tab, dr)
+    assert cut.nnz == small.nnz < big.nnz
+    assert (cut != small).nnz == 0
+
+
+def test_companions_take_their_near_field_from_the_product():
+    """The looser companions' stored near fields come from the product's pattern (no second cell
+    search) and give the products a fresh build gives."""
+    kernel = MultiOrder(10.0, 0.01)
+    c = np.random.default_rng(5).uniform(-0.5, 0.5, (4000, 3))
+    g = fast.GridSum(kernel, c, eps=1e-7, store=True)
+    w = np.random.default_rng(6).normal(size=len(c))
+    g.matvec(w)  # the product's near field first
+    tier = g._tier(1e-3)
+    assert tier._near_parent is g and tier.rc <= g.rc
+    fresh = fast.GridSum(kernel, c, eps=1e-3, radius=g.tier_radius(1e-3), store=True)
+    assert tier.near.nnz == fresh.near.nnz
+    assert np.allclose(g.matvec(w, eps=1e-3), fresh.matvec(w), rtol=1e-12, atol=1e-12 * np.abs(fresh.matvec(w)).max())

@@ -15,7 +15,7 @@ from o3drbf.rbf.kernels import Kernel, MultiOrder
 from o3drbf.rbf.sums import kernel_matrix, kernel_sum
 from o3drbf.solvers.base import memory_limit_or_default
 from o3drbf.solvers.fast.fmm import FastSum
-from o3drbf.solvers.fast.neighbours import (HAVE_GRID, CellList, csr_matvec, default_neighbours, neighbour_radius, njit, prange, product_neighbours,
+from o3drbf.solvers.fast.neighbours import (HAVE_GRID, CellList, csr_matvec, default_neighbours, restrict_near, neighbour_radius, njit, prange, product_neighbours,
                                             store_near)
 from o3drbf.solvers.fast.tolerance import DEFAULT_EPS, clip_eps
 
@@ -449,7 +449,11 @@ class GridSum:
     def near(self):
         """Sparse matrix of phi_S between the grid's (core) centres (built on first use)."""
         if self._near_m is None:
-            self._near_m = self.cells.matrix(self._cc, self.tab, self.dr)
+            parent = self.__dict__.get("_near_parent")
+            if parent is not None and parent._near_m is not None and parent.rc >= self.rc:
+                self._near_m = restrict_near(parent._near_m, self._cc, self.rc, self.tab, self.dr)  # no cell search
+            else:
+                self._near_m = self.cells.matrix(self._cc, self.tab, self.dr)
             self.info["near_nnz"] = int(self._near_m.nnz)
         return self._near_m
 
@@ -479,6 +483,7 @@ class GridSum:
                     tiers[tol] = GridSum(self.kernel, self.centres, eps=tol, radius=self.tier_radius(tol),
                                          tree=self.tree, outside=self.outside, budget=self._fixed_budget, store=self.store)
                     tiers[tol]._outside_held = self.__dict__.setdefault("_outside_held", [])  # the same far block
+                    tiers[tol]._near_parent = self  # its near field: a part of this one's
                 return tiers[tol]
         return self
 

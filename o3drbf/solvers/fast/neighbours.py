@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 from o3drbf.solvers.base import memory_limit_or_default
 
 __all__ = ["HAVE_GRID", "NNZ_BYTES", "PRODUCT_NEIGHBOURS_MAX", "NEAR_STORE_BYTES", "store_near", "pairs_chunks", "mean_neighbours", "sparse_matrix",
-           "CellList", "default_neighbours", "product_neighbours", "neighbour_radius", "csr_matvec"]
+           "CellList", "default_neighbours", "product_neighbours", "neighbour_radius", "csr_matvec", "restrict_near"]
 
 #: Bytes per stored sparse entry (float64 value, int32 column index).
 NNZ_BYTES = 12
@@ -64,6 +64,58 @@ def csr_matvec(a, x, out=None) -> np.ndarray:
         out = np.zeros(a.shape[0])
     _csr_matvec(a.indptr, a.indices, a.data, x, out)
     return out
+
+
+@njit(cache=True, parallel=True)
+def _restrict_pass(fill, indptr, indices, pts, rc, tab, dr, counts, out_indptr, out_indices, out_data):
+    rc2 = rc * rc
+    nt = tab.shape[0]
+    for i in prange(indptr.shape[0] - 1):
+        c = out_indptr[i] if fill else 0
+        for k in range(indptr[i], indptr[i + 1]):
+            j = indices[k]
+            d0 = pts[i, 0] - pts[j, 0]; d1 = pts[i, 1] - pts[j, 1]; d2 = pts[i, 2] - pts[j, 2]
+            r2 = d0 * d0 + d1 * d1 + d2 * d2
+            if r2 > rc2:
+                continue
+            if fill:
+                x = math.sqrt(r2) / dr
+                ii = min(int(x), nt - 2)
+                f = x - ii
+                out_indices[c] = j
+                out_data[c] = tab[ii] * (1 - f) + tab[ii + 1] * f
+            c += 1
+        if not fill:
+            counts[i] = c
+
+
+def restrict_near(matrix, points, radius: float, tab, dr: float) -> sp.csr_matrix:
+    """The near-field matrix of a smaller ``radius`` from a larger one's pattern: the pairs of ``matrix``
+    (square, rows and columns both ``points``) within ``radius``, valued by ``tab`` as
+    :meth:`CellList.matrix` values them (the same entries, each row in ``matrix``'s order), without
+    the cell search.
+
+    Parameters
+    ----------
+    matrix : (N, N) csr_matrix
+        A near-field matrix whose radius is at least ``radius``.
+    points : (N, 3) float array
+    radius : float
+    tab : (T,) array
+        The function at ``r = 0, dr, 2 dr, ...``.
+    dr : float
+    """
+    pts = np.ascontiguousarray(points, dtype=float)
+    m = matrix.shape[0]
+    counts = np.zeros(m, np.int64)
+    i32, f64 = np.zeros(1, np.int32), np.zeros(1)
+    indptr = np.zeros(m + 1, np.int64)
+    _restrict_pass(False, matrix.indptr, matrix.indices, pts, float(radius), tab, float(dr), counts, indptr, i32, f64)
+    np.cumsum(counts, out=indptr[1:])
+    indices = np.empty(indptr[-1], matrix.indices.dtype)
+    data = np.empty(indptr[-1])
+    _restrict_pass(True, matrix.indptr, matrix.indices, pts, float(radius), tab, float(dr), counts, indptr, indices, data)
+    return sp.csr_matrix((data, indices, indptr), shape=matrix.shape)
 
 
 def pairs_chunks(tree_s: cKDTree, targets: np.ndarray, radius: float, per_target: float):
