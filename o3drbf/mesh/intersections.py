@@ -35,7 +35,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 __all__ = ["self_intersecting_pairs", "is_watertight"]
 
@@ -318,18 +318,25 @@ def _grid_entries(lo, hi, small, dims):
     return keys, ids
 
 
+@njit(cache=True, parallel=True)
+def _pairs_in_cells(verts, tris, bmin, bmax, lo, dims, keys, ids, bounds, out, counts):
+    """:func:`_pairs_in_range` over the chunks ``bounds[c] <= entry < bounds[c + 1]`` (whole cells) in
+    parallel, chunk ``c`` writing into ``out[c]`` and its count into ``counts[c]``."""
+    for c in prange(bounds.shape[0] - 1):
+        counts[c] = _pairs_in_range(verts, tris, bmin, bmax, lo, dims, keys, ids, bounds[c], bounds[c + 1], out[c])
+
+
 @njit(cache=True)
-def _pairs_in_cells(verts, tris, bmin, bmax, lo, dims, keys, ids, out):
-    """Pairs from each cell, each reported once: in the cell holding the
-    lower corner of the intersection of the two boxes.
+def _pairs_in_range(verts, tris, bmin, bmax, lo, dims, keys, ids, begin, total, out):
+    """Pairs from each cell of the entries ``begin <= entry < total``, each reported once: in the cell
+    holding the lower corner of the intersection of the two boxes.
 
     Writes the first ``len(out)`` pairs into ``out`` ``(M, 2)`` and returns
     how many there are in all.
     """
     n = 0
     work = np.empty((2, 3, 3))
-    start = 0
-    total = keys.shape[0]
+    start = begin
     while start < total:
         stop = start + 1
         while stop < total and keys[stop] == keys[start]:
@@ -355,7 +362,7 @@ def _pairs_in_cells(verts, tris, bmin, bmax, lo, dims, keys, ids, out):
 @njit(cache=True)
 def _pairs_of_big(verts, tris, bmin, bmax, big_ids, small, out):
     """Pairs with at least one triangle too large for the grid, by brute
-    force; written to ``out`` as in :func:`_pairs_in_cells`."""
+    force; written to ``out`` as in :func:`_pairs_in_range`."""
     n = 0
     work = np.empty((2, 3, 3))
     nf = tris.shape[0]
@@ -454,19 +461,29 @@ def self_intersecting_pairs(vertices: Any, triangles: Any) -> np.ndarray:
     order = np.argsort(keys, kind="stable")
     keys, ids = keys[order], ids[order]
     big_ids = np.flatnonzero(~small).astype(np.int64)
+    # Chunks of whole cells (each starts where a cell's entries start), tested in parallel.
+    total = len(keys)
+    chunks = min(64, max(1, total // 4096))
+    bounds = np.unique(np.r_[0, np.searchsorted(keys, keys[np.linspace(0, total, chunks + 1)[1:-1].astype(np.int64)]), total])
     pairs = []
-    for run in ("cells", "big") if big_ids.size else ("cells",):
+    cap = max(256, tris.shape[0] // (8 * chunks))
+    for _ in range(2):  # a second pass only if a chunk's buffer was too small
+        out = np.empty((len(bounds) - 1, cap, 2), dtype=np.int64)
+        counts = np.zeros(len(bounds) - 1, np.int64)
+        _pairs_in_cells(verts, tris, bmin, bmax, lo, dims, keys, ids, bounds.astype(np.int64), out, counts)
+        if counts.max(initial=0) <= cap:
+            break
+        cap = int(counts.max())
+    pairs += [out[c, :counts[c]] for c in range(len(counts))]
+    if big_ids.size:
         out = np.empty((max(1024, tris.shape[0] // 8), 2), dtype=np.int64)
-        for _ in range(2):  # a second pass only if the buffer was too small
-            if run == "cells":
-                n = _pairs_in_cells(verts, tris, bmin, bmax, lo, dims, keys, ids, out)
-            else:
-                n = _pairs_of_big(verts, tris, bmin, bmax, big_ids, small, out)
+        for _ in range(2):
+            n = _pairs_of_big(verts, tris, bmin, bmax, big_ids, small, out)
             if n <= out.shape[0]:
                 break
             out = np.empty((n, 2), dtype=np.int64)
         pairs.append(out[:n])
-    out = np.concatenate(pairs, axis=0)
+    out = np.concatenate(pairs, axis=0) if pairs else np.empty((0, 2), dtype=np.int64)
     return out[np.lexsort((out[:, 1], out[:, 0]))]
 
 
