@@ -15,9 +15,10 @@ read -> register (scans with cameras) -> outliers -> constraints -> parameters -
 (-> confidence and trim, when asked).
 """
 
-from o3drbf.startup import defer_open3d_plotly
+from o3drbf.startup import defer_open3d_plotly, prefer_numba_workqueue
 
 defer_open3d_plotly()  # before anything imports open3d (see o3drbf.startup)
+prefer_numba_workqueue()  # before any compiled module runs in parallel
 
 #: Where each public name lives: imported on first use (PEP 562), so ``import o3drbf`` and
 #: ``o3drbf --help`` do not load SciPy, Numba and Open3D until something needs them.

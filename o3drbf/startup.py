@@ -15,11 +15,15 @@ import importlib
 import sys
 import types
 
-__all__ = ["defer_open3d_plotly", "PLOTLY_MODULE", "no_hugepage_advice", "HUGEPAGE_VARIABLE"]
+__all__ = ["defer_open3d_plotly", "PLOTLY_MODULE", "no_hugepage_advice", "HUGEPAGE_VARIABLE",
+           "prefer_numba_workqueue", "THREADING_PRIORITY"]
 
 #: NumPy's environment variable (read when NumPy is imported): "0" stops it advising the kernel to back
 #: large arrays with transparent huge pages.
 HUGEPAGE_VARIABLE = "NUMPY_MADVISE_HUGEPAGE"
+
+#: Numba's threading layers in the order o3drbf tries them (Numba's own default starts with TBB).
+THREADING_PRIORITY = ("workqueue", "omp", "tbb")
 
 #: The Open3D module that imports Dash and Plotly.
 PLOTLY_MODULE = "open3d.visualization.draw_plotly"
@@ -90,4 +94,32 @@ def no_hugepage_advice() -> bool:
     if HUGEPAGE_VARIABLE in os.environ or "numpy" in sys.modules:
         return False
     os.environ[HUGEPAGE_VARIABLE] = "0"
+    return True
+
+
+def prefer_numba_workqueue() -> bool:
+    """Make Numba try its own "workqueue" threads first, unless the user chose a threading layer.
+
+    With the OpenMP layer, the solve (OpenBLAS) and the compiled sums both slow down next to
+    Open3D's OpenMP runtime (docs/data/design-measurements.md, "Numba's threading layer"), and an
+    old system TBB makes Numba print a warning the first time any parallel function runs.  Called
+    when ``o3drbf`` is imported, so it holds for every compiled module whichever runs first; set
+    through the environment (read when Numba is imported) when Numba is not imported yet, else on
+    its configuration.  workqueue must not be entered from two Python threads at once: o3drbf calls
+    its parallel functions from one thread at a time.
+
+    Returns
+    -------
+    bool
+        Whether the order was set here (False when ``NUMBA_THREADING_LAYER`` or
+        ``NUMBA_THREADING_LAYER_PRIORITY`` is set already).
+    """
+    import os
+
+    if "NUMBA_THREADING_LAYER" in os.environ or "NUMBA_THREADING_LAYER_PRIORITY" in os.environ:
+        return False
+    os.environ["NUMBA_THREADING_LAYER_PRIORITY"] = " ".join(THREADING_PRIORITY)
+    numba = sys.modules.get("numba")
+    if numba is not None:  # imported before o3drbf: its configuration has read the environment already
+        numba.config.THREADING_LAYER_PRIORITY = list(THREADING_PRIORITY)
     return True

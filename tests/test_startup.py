@@ -1,6 +1,7 @@
 """Start-up and machine-readable reports: what a user's first seconds and a benchmark rely on."""
 
 import json
+import os
 import subprocess
 import sys
 
@@ -156,3 +157,29 @@ def test_the_command_line_turns_numpys_huge_page_advice_off_unless_the_user_set_
     assert off.stdout.split() == ["False", "0"], off.stderr[-500:]
     assert kept.stdout.split() == ["True", "1"], kept.stderr[-500:]
     assert first.stdout.split() == ["True", "None"], first.stderr[-500:]  # NumPy imported first: left alone
+
+
+@pytest.mark.parametrize("numba_first", [False, True])
+def test_numba_runs_on_its_workqueue_whichever_compiled_module_runs_first(numba_first):
+    """The self-intersection count (parallel Numba) run before any RBF module: Numba's default order
+    tries TBB first, and an old system TBB prints a warning to the user's terminal; o3drbf's order
+    is set at ``import o3drbf``, also when the program imported Numba before it."""
+    out = _python(
+        "import warnings\n"
+        "warnings.simplefilter('error')\n"  # any warning (the TBB one included) fails the run
+        + ("import numba\n" if numba_first else "")
+        + "import numpy as np\n"
+        "from o3drbf.mesh.intersections import self_intersecting_pairs\n"
+        "import numba\n"
+        "v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)\n"
+        "t = np.array([[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]])\n"
+        "print(len(self_intersecting_pairs(v, t)), numba.threading_layer())\n"
+    )
+    assert out.split() == ["0", "workqueue"], out
+
+
+def test_a_users_threading_layer_is_kept():
+    proc = subprocess.run([sys.executable, "-c", "import o3drbf, os; print(os.environ['NUMBA_THREADING_LAYER_PRIORITY'])"],
+                          capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "NUMBA_THREADING_LAYER_PRIORITY": "omp workqueue tbb"})
+    assert proc.returncode == 0 and proc.stdout.split() == ["omp", "workqueue", "tbb"], proc.stderr[-2000:]

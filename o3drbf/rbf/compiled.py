@@ -13,17 +13,8 @@ import math
 import numpy as np
 
 try:  # numba is a dependency, but the library still works (slower) without it
-    import os
+    import numba  # its threading layer is chosen by o3drbf.startup.prefer_numba_workqueue
 
-    import numba
-
-    if "NUMBA_THREADING_LAYER" not in os.environ:
-        # Numba's own "workqueue" threads: with the OpenMP layer, the solve
-        # (OpenBLAS) and the sums both slow down next to Open3D's OpenMP
-        # runtime (docs/data/design-measurements.md, "Numba's threading layer"), and an old
-        # system TBB makes numba warn.  workqueue must not be entered from two Python
-        # threads at once: o3drbf calls it from one thread at a time.
-        numba.config.THREADING_LAYER_PRIORITY = ["workqueue", "omp", "tbb"]
     HAVE_NUMBA = True
 except ImportError:  # pragma: no cover
     HAVE_NUMBA = False
