@@ -16,6 +16,9 @@ Cases
   (not with ``--quick``); ``torus 900k --surface-count 300000`` and
   ``torus 1M --all-points`` with ``--large``.
 
+Before the cases, ``scripts/warm_up.py`` (what ``make`` runs after installing) fills Numba's
+compiled cache, in case the source changed since; its seconds are printed beside the table.
+
 Peers see what a user of theirs has: Open3D Poisson (depth 8 and 9) uses the cloud's
 normals when it has them; for the scans, which have none, it estimates them (30
 neighbours) and turns each toward its scanner, inside its timed process.  ferreus_rbf
@@ -295,6 +298,10 @@ def main(argv=None) -> int:
     if not cases:
         print(f"user_path: no case's name contains {args.case!r}; see the list in --help's module text", file=sys.stderr)
         return 2
+    warm = timed([sys.executable, str(ROOT / "scripts" / "warm_up.py")], env=env)
+    if warm["rc"] != 0:
+        print(f"user_path: scripts/warm_up.py failed (exit {warm['rc']}):\n{warm['err']}", file=sys.stderr)
+        return 1
     load0 = os.getloadavg()
     help_seconds = timed(o3drbf_command() + ["--help"], env=env)["seconds"]
     rows = []
@@ -305,14 +312,15 @@ def main(argv=None) -> int:
     load1 = os.getloadavg()
     threads = env.get("OMP_NUM_THREADS", "unset")
     head = (f"load average at start {load0[0]:.2f} / {load0[1]:.2f} / {load0[2]:.2f}, at end {load1[0]:.2f} / "
-            f"{load1[1]:.2f} / {load1[2]:.2f}; {os.cpu_count()} cores; OMP_NUM_THREADS {threads}; inputs in {folder}")
+            f"{load1[1]:.2f} / {load1[2]:.2f}; {os.cpu_count()} cores; OMP_NUM_THREADS {threads}; inputs in {folder}; "
+            f"warm-up (scripts/warm_up.py, before the cases) {warm['seconds']:.1f} s")
     text = tables(rows, help_seconds)
     print(f"\n{head}\n\n{text}")
     if args.record:
         args.record.parent.mkdir(parents=True, exist_ok=True)
         record = {"date": time.strftime("%Y-%m-%d %H:%M"), "machine": {"cores": os.cpu_count(), "platform": platform.platform(),
                   "load_start": load0, "load_end": load1, "omp_threads": threads},
-                  "help_seconds": help_seconds, "rows": rows, "tables": text}
+                  "help_seconds": help_seconds, "warm_up_seconds": warm["seconds"], "rows": rows, "tables": text}
         args.record.write_text(json.dumps(record, indent=1))
     return 0
 

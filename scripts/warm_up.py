@@ -1,8 +1,9 @@
 """Compile o3drbf's Numba kernels once, into their on-disk cache, so a user's first run does not pay for it.
 
 Run by ``scripts/setup.sh`` after installing (and again whenever a source file changed):
-two small reconstructions on the command line's path (with its closing summary), points with normals and a range
-scan with cameras, written into a temporary folder and thrown away.
+small reconstructions on the command line's path (with its closing summary): points with normals (with the dense
+solver, then the fast one, which larger clouds get) and a range scan with cameras, written into a temporary folder
+and thrown away.  ``benchmarks/user_path.py`` runs it too before timing anything.
 
     python scripts/warm_up.py
 """
@@ -33,12 +34,12 @@ def main() -> int:
         mesh = o3d.geometry.TriangleMesh.create_torus(torus_radius=0.7, tube_radius=0.25, radial_resolution=40, tubular_resolution=20)
         scan_points, owner, cameras = range_scans(mesh, n_views=3, width=80, height=60, seed=0)
         scan = write_scan_json(folder / "scan.json", scan_points, cameras, point_camera=owner)
-        for source in (cloud, scan):
+        for source, extra in ((cloud, []), (cloud, ["--solver", "fast"]), (scan, [])):
             # Not -q: the closing summary's mesh checks (self-intersections) have kernels of their own.
             with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
-                code = cli(["reconstruct", str(source), "-o", str(folder / "mesh.ply")])
+                code = cli(["reconstruct", str(source), "-o", str(folder / "mesh.ply")] + extra)
             if code:
-                print(f"warm-up: reconstruct {source.name} exited {code}", file=sys.stderr)
+                print(f"warm-up: reconstruct {source.name} {' '.join(extra)} exited {code}", file=sys.stderr)
                 return code
         # Dense solves from 2,000 constraints factor a float32 copy (o3drbf.solvers.dense), filled with the
         # double matrix in one pass (lower_pair), or copied from it (lower_single): their kernels too.

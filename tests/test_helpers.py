@@ -165,10 +165,19 @@ def test_mean_spacing_exact_and_sampled():
 
 
 def test_rss_peak_sees_a_large_allocation():
+    import gc
+
     from o3drbf.evaluation.compare import _RssPeak
 
-    with _RssPeak(interval=0.002) as peak:
-        block = np.ones(100 * 2**20 // 8)  # 100 MB, touched
-        time.sleep(0.05)
-        del block
+    # Earlier tests' garbage collected inside the block would lower the RSS as much as the block raises it
+    # (a CI run saw 8 kB): collected before, and no collection during; the sampler has 0.3 s to see it on a busy machine.
+    gc.collect()
+    gc.disable()
+    try:
+        with _RssPeak(interval=0.002) as peak:
+            block = np.ones(100 * 2**20 // 8)  # 100 MB, touched
+            time.sleep(0.3)
+            del block
+    finally:
+        gc.enable()
     assert peak.peak_bytes is not None and peak.peak_bytes > 80 * 2**20

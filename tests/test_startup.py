@@ -67,9 +67,13 @@ def test_report_must_be_a_new_json_file(tmp_path, capsys, name):
 
 
 def test_set_up_warm_up_leaves_nothing_to_compile_on_a_first_run(tmp_path):
-    """``scripts/warm_up.py`` (run by ``make setup``) caches every kernel a default run with its summary uses."""
-    import os
+    """``scripts/warm_up.py`` (run by ``make setup``) caches every kernel a default run with its summary uses:
+    points with normals on the dense solver and on the fast one (larger clouds), and a range scan with cameras."""
     from pathlib import Path
+
+    import open3d as o3d
+
+    from o3drbf.synthetic.scans import range_scans, write_scan_json
 
     root = Path(__file__).resolve().parents[1]
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
@@ -77,11 +81,16 @@ def test_set_up_warm_up_leaves_nothing_to_compile_on_a_first_run(tmp_path):
     assert warm.returncode == 0, warm.stderr[-2000:]
     p, n = Sphere(1.0).sample(2000, seed=5)
     write_points(tmp_path / "sphere.ply", p, n)
+    sphere = o3d.geometry.TriangleMesh.create_sphere(0.8, 30)
+    points, owner, cameras = range_scans(sphere, n_views=3, width=60, height=45, seed=2)
+    scan = write_scan_json(tmp_path / "scan.json", points, cameras, point_camera=owner)
+    runs = [[str(tmp_path / "sphere.ply")], [str(tmp_path / "sphere.ply"), "--solver", "fast"], [str(scan)]]
     code = (
         "import gc, sys\n"
         "from numba.core.registry import CPUDispatcher\n"
         "from o3drbf.cli import main\n"
-        f"assert main(['reconstruct', {str(tmp_path / 'sphere.ply')!r}, '-o', {str(tmp_path / 'm.ply')!r}]) == 0\n"
+        f"for args in {runs!r}:\n"
+        f"    assert main(['reconstruct', *args, '-o', {str(tmp_path / 'm.ply')!r}]) == 0, args\n"
         "compiled = sorted(f'{d.py_func.__module__}.{d.__name__}' for d in gc.get_objects()\n"
         "                  if isinstance(d, CPUDispatcher) and d.py_func.__module__.startswith('o3drbf') and d.stats.cache_misses)\n"
         "print('COMPILED', *compiled, file=sys.stderr)\n"
