@@ -187,6 +187,8 @@ def evaluate_grid(
     exact : bool ndarray of ``shape``
         Where ``values`` were evaluated rather than interpolated.
     """
+    from o3drbf.mesh.band import candidate_cells, corners_to_evaluate
+
     origin = np.asarray(origin, dtype=float)
     shape = tuple(int(s) for s in shape)
     cells = np.array(shape) - 1
@@ -216,7 +218,7 @@ def evaluate_grid(
         # cross, so the cells left out contain no surface.
         # The first sweep tests every cell; later ones only the cells with a
         # corner just evaluated (no other cell's test can change).
-        cells = _candidate_cells(vals - level, margin)
+        cells = candidate_cells(vals, level, margin)
         where = np.nonzero(_corners(cells, vals.shape) & ~exact)
         for _sweep in range(64):
             if where[0].size == 0:
@@ -224,52 +226,10 @@ def evaluate_grid(
             vals[where] = func(_grid_points(origin, spacing, [w * stride for w in where]))
             exact[where] = True
             _tick(bar, where[0].size)
-            where = _corners_to_evaluate(vals, exact, where, level, margin)
+            where = corners_to_evaluate(vals, exact, where, level, margin)
     if bar is not None:
         bar.close()
     return vals, exact
-
-
-def _candidate_cells(d, margin: float = 0.5):
-    """Cells whose corners change sign, or come closer to zero than ``margin``
-    times their own spread (a local Lipschitz test for surfaces between the corners)."""
-    corners = [d[a : a + d.shape[0] - 1, b : b + d.shape[1] - 1, c : c + d.shape[2] - 1] for a in (0, 1) for b in (0, 1) for c in (0, 1)]
-    # In place, one corner at a time: reducing the list would stack 8 copies of
-    # the grid.
-    mn = corners[0].copy()
-    mx = corners[0].copy()
-    absmin = np.abs(corners[0])
-    for x in corners[1:]:
-        np.minimum(mn, x, out=mn)
-        np.maximum(mx, x, out=mx)
-        np.minimum(absmin, np.abs(x), out=absmin)
-    return _near_level(mn, mx, absmin, margin)
-
-
-def _near_level(mn, mx, absmin, margin: float):
-    """The cell test of :func:`_candidate_cells` from its corners' smallest, largest and smallest absolute values."""
-    return ((mn <= 0) & (mx >= 0)) | (absmin <= margin * (mx - mn))
-
-
-def _corners_to_evaluate(vals, exact, changed, level: float, margin: float):
-    """The not yet exact corners of the candidate cells (:func:`_candidate_cells`) among those with a corner in
-    ``changed`` (index arrays), as index arrays."""
-    ncell = tuple(n - 1 for n in vals.shape)
-    offsets = [(a, b, c) for a in (0, 1) for b in (0, 1) for c in (0, 1)]
-    p = np.stack(changed, axis=1)
-    touched = np.zeros(ncell, dtype=bool)  # boolean marks, not np.unique: no sort of the candidates at each sweep
-    for o in offsets:
-        c = p - o
-        c = c[((c >= 0) & (c < ncell)).all(axis=1)]
-        touched[tuple(c.T)] = True
-    cells = np.stack(np.nonzero(touched), axis=1)
-    d = np.stack([vals[tuple((cells + o).T)] for o in offsets], axis=1) - level  # (cells, 8 corners)
-    cells = cells[_near_level(d.min(axis=1), d.max(axis=1), np.abs(d).min(axis=1), margin)]
-    need = np.zeros(vals.shape, dtype=bool)
-    for o in offsets:
-        need[tuple((cells + o).T)] = True
-    need &= ~exact
-    return np.nonzero(need)
 
 
 def _corners(cells, shape):
