@@ -64,12 +64,19 @@ def _kth_distance(tree, x, k, chunk=100_000):
     return out
 
 
+#: The local step's radius is a median over at most this many centres (a seeded sample beyond it: the
+#: k-th distances of every one of a million centres took most of the preconditioner's set-up).
+RADIUS_SAMPLE = 50_000
+
+
 def tapered_near(kernel, centres, tree, neighbours: int, diag):
     """The local step's matrix: ``phi(r) - phi(R)`` between the centres within R (the median distance
-    to the ``neighbours``-th neighbour), its diagonal ``diag`` (CSR, built in place by the cell list,
-    the tapered kernel tabulated at 32,768 radii).  Returns (matrix, R, phi(R))."""
+    to the ``neighbours``-th neighbour, over every centre up to ``RADIUS_SAMPLE`` of them, else over a
+    seeded sample of that many), its diagonal ``diag`` (CSR, built in place by the cell list, the
+    tapered kernel tabulated at 32,768 radii).  Returns (matrix, R, phi(R))."""
     n = len(centres)
-    radius = float(np.median(_kth_distance(tree, centres, neighbours + 1)))
+    sample = centres if n <= RADIUS_SAMPLE else centres[np.sort(np.random.default_rng(0).choice(n, RADIUS_SAMPLE, replace=False))]
+    radius = float(np.median(_kth_distance(tree, sample, neighbours + 1)))
     phir = float(kernel(np.array([radius]))[0])
     rr = np.linspace(0.0, 1.01 * radius, 1 << 15)
     tab = kernel(rr) - phir
