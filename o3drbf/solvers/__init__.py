@@ -39,10 +39,11 @@ METHODS = ("auto", "dense", "iterative", "fast")
 
 #: ``method="auto"`` solves densely up to this many constraints and uses the
 #: fast solver above: up to it the dense fit with its robust refits (Woodbury
-#: updates of one factorization, :class:`Refitter`) takes less time than the
-#: fast one on the robustness study's scans (docs/data/design-measurements.md, "Solver
-#: choice").  It is also the largest dense solve run at all (``DENSE_MAX``).
-DENSE_AUTO_MAX = 12_000
+#: updates of one factorization, :class:`Refitter`) takes about the time of the
+#: fast one or less, above it more, refits included, on the robustness study's scans
+#: (``benchmarks/fast_study_cells.py --solver dense --solver fast``; docs/data/design-measurements.md,
+#: "Solver choice").  ``method="dense"`` still solves up to ``DENSE_MAX``.
+DENSE_AUTO_MAX = 7_500
 
 log = logging.getLogger("o3drbf")
 
