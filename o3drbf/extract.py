@@ -18,7 +18,7 @@ from o3drbf.progress import progress_bar
 from o3drbf.validation import check_number
 
 __all__ = ["extract_mesh", "evaluate_grid", "refine_on_edges", "grid_for", "mesh_evaluator", "GRID_EVALUATION_MIN", "MESH_EPS",
-           "AUTO_RESOLUTION", "auto_resolution", "CORNER_GAP"]
+           "AUTO_RESOLUTION", "auto_resolution", "CORNER_GAP", "REFINE_TOL"]
 
 #: ``resolution="auto"`` (the default here and in ``o3drbf.DEFAULTS``, whose
 #: ``AUTO_SIZES`` holds these): marching-cubes cells per surface-constraint
@@ -418,6 +418,11 @@ def extract_mesh(
     return mesh
 
 
+#: A vertex whose last false-position step moved it less than this fraction of its edge takes no
+#: more steps: the steps converge superlinearly, so the next one would move it far less (on a smooth
+#: surface most vertices skip the last step).
+REFINE_TOL = 1e-3
+
 #: Refined vertices stay this fraction of an edge away from its corners (0.01
 #: left slivers that Open3D's self-intersection test flags, on a ball three
 #: cells in radius).
@@ -435,7 +440,8 @@ def refine_on_edges(func, verts, vals, origin, h: float, level: float = 0.0, ste
     vertex instead takes ``steps`` false-position steps (Illinois variant) on
     its own edge, bracketed by the corner values (one evaluation of f per
     vertex and step; three leave a ball 3.3 cells in radius within 1e-5
-    cells, where straight lines leave it 0.03 cells inside).
+    cells, where straight lines leave it 0.03 cells inside); a vertex whose
+    last step moved it less than ``REFINE_TOL`` of its edge takes no more.
     It never leaves its edge, nor comes closer to a corner than
     ``_REFINE_GAP`` of the edge (unless marching cubes put it closer): the
     triangles keep their cells and the mesh its topology.
@@ -453,15 +459,16 @@ def refine_on_edges(func, verts, vals, origin, h: float, level: float = 0.0, ste
         The grid's first node and spacing (box units).
     level : float
     steps : int
+        The most false-position steps a vertex takes.
     first_node : (3,) int array_like, optional
         Index coordinates of ``vals[0, 0, 0]`` when ``verts`` and ``origin``
         refer to a larger lattice (a tile of :func:`o3drbf.tiles.extract.extract_tiled`:
         positions then do not depend on where the tile starts); default 0.
     gradient : bool
-        Also return grad f at the vertices: from the last step's evaluation
-        (``func(points, gradient=True)``), where the vertex was before that
-        step's final update, and from one more evaluation for any vertex not
-        refined.
+        Also return grad f at the vertices: from the vertex's last step's
+        evaluation (``func(points, gradient=True)``, from the second step on),
+        where the vertex was before that step's update, and from one more
+        evaluation for any vertex not refined that far.
 
     Returns
     -------
@@ -495,25 +502,32 @@ def refine_on_edges(func, verts, vals, origin, h: float, level: float = 0.0, ste
     lo, hi = np.minimum(t, _REFINE_GAP), np.maximum(t, 1.0 - _REFINE_GAP)
     kept_b = np.zeros(len(t), dtype=bool)
     grads = np.full((len(v), 3), np.nan) if gradient else None
+    act = np.arange(len(t))  # the vertices still moving: one whose last step moved less than REFINE_TOL is done
     for step in range(int(steps)):
-        p = a.astype(float)
-        p[np.arange(len(p)), axis] += t
-        if gradient and step == int(steps) - 1:
-            ft, g = func(origin + p * h, gradient=True)
-            grads[rows] = g
+        if not len(act):
+            break
+        ta_, tb_, t_, fa_, fb_, kb_ = ta[act], tb[act], t[act], fa[act], fb[act], kept_b[act]
+        p = a[act].astype(float)
+        p[np.arange(len(p)), axis[act]] += t_
+        if gradient and (step > 0 or int(steps) == 1):  # from the second step on a vertex is nearly there:
+            ft, g = func(origin + p * h, gradient=True)  # its gradient there serves the normals
+            grads[rows[act]] = g
         else:
             ft = func(origin + p * h)
         ft = np.asarray(ft, dtype=float).reshape(-1) - level
-        same_as_a = (ft < 0) == (fa < 0)
+        same_as_a = (ft < 0) == (fa_ < 0)
         # Illinois: the end kept twice running has its value halved, so the bracket closes from both sides
         # (marching cubes' own interpolation counts as a step that kept a).
-        fb = np.where(same_as_a & kept_b, 0.5 * fb, fb)
-        fa = np.where(~same_as_a & ~kept_b, 0.5 * fa, fa)
-        kept_b = same_as_a
-        ta, fa = np.where(same_as_a, t, ta), np.where(same_as_a, ft, fa)
-        tb, fb = np.where(same_as_a, tb, t), np.where(same_as_a, fb, ft)
-        t = ta + (tb - ta) * fa / (fa - fb)
-        t = np.clip(t, lo, hi)
+        fb_ = np.where(same_as_a & kb_, 0.5 * fb_, fb_)
+        fa_ = np.where(~same_as_a & ~kb_, 0.5 * fa_, fa_)
+        kb_ = same_as_a
+        ta_, fa_ = np.where(same_as_a, t_, ta_), np.where(same_as_a, ft, fa_)
+        tb_, fb_ = np.where(same_as_a, tb_, t_), np.where(same_as_a, fb_, ft)
+        new_t = np.clip(ta_ + (tb_ - ta_) * fa_ / (fa_ - fb_), lo[act], hi[act])
+        ta[act], tb[act], fa[act], fb[act], kept_b[act] = ta_, tb_, fa_, fb_, kb_
+        moved = np.abs(new_t - t_)
+        t[act] = new_t
+        act = act[moved >= REFINE_TOL]
     v[rows, axis] = start + t
     if not gradient:
         return v

@@ -192,3 +192,38 @@ def test_vertices_are_moved_onto_the_surface_along_their_edges(refine):
     on_node = np.abs(idx - np.rint(idx)) < 1e-5  # float32 vertices
     assert (on_node.sum(axis=1) >= 2).all()
 
+
+
+def test_vertices_that_stopped_moving_take_no_more_steps(monkeypatch):
+    """A vertex whose last step moved it less than REFINE_TOL of its edge is not evaluated again: the last
+    step evaluates fewer points than the first, and the vertices stay within REFINE_TOL cells of where
+    every step for every vertex puts them (normals within a hundredth of a degree).  A ball 19 cells in radius."""
+    import o3drbf.extract as ex
+
+    res = 64
+    h = 2.0 / res
+    ball = Ball(0.6)
+    calls = []
+
+    def counted(x, gradient=False):
+        calls.append(len(x))
+        return ball.evaluate_box(x, gradient=gradient)
+
+    def run():
+        calls.clear()
+        mesh = extract_mesh(ball, resolution=res, bounds=[[-1, -1, -1], [1, 1, 1]], evaluator=counted)
+        return np.asarray(mesh.vertices), np.asarray(mesh.vertex_normals), list(calls)
+
+    v, n, c = run()
+    tol = ex.REFINE_TOL
+    monkeypatch.setattr(ex, "REFINE_TOL", 0.0)
+    v_all, n_all, c_all = run()
+    refine = c_all[-3:]  # the three steps of every vertex, after the grid's evaluations
+    assert refine[0] == refine[1] == refine[2] == len(v_all)
+    # the first step (every vertex), the second, the last (the vertices still moving only), then the gradients
+    # of the vertices that stopped after the first step
+    assert c[-4] == len(v) and c[-2] < 0.5 * len(v) and c[-1] + c[-3] == len(v)
+    assert 0 < np.abs(v - v_all).max() < tol * h
+    assert np.degrees(np.arccos(np.clip((n * n_all).sum(axis=1), -1, 1))).max() < 0.01
+    err = np.abs(np.linalg.norm(v, axis=1) - ball.radius)
+    assert np.median(err) < 1e-3 * h
