@@ -165,19 +165,15 @@ def test_mean_spacing_exact_and_sampled():
 
 
 def test_rss_peak_sees_a_large_allocation():
-    import gc
+    import mmap
 
     from o3drbf.evaluation.compare import _RssPeak
 
-    # Earlier tests' garbage collected inside the block would lower the RSS as much as the block raises it
-    # (a CI run saw 8 kB): collected before, and no collection during; the sampler has 0.3 s to see it on a busy machine.
-    gc.collect()
-    gc.disable()
-    try:
-        with _RssPeak(interval=0.002) as peak:
-            block = np.ones(100 * 2**20 // 8)  # 100 MB, touched
-            time.sleep(0.3)
-            del block
-    finally:
-        gc.enable()
+    # Fresh anonymous pages, written: np.ones could reuse heap memory that earlier tests freed but the
+    # process still holds (two CI runs saw 4-8 kB of growth for a 100 MB block).
+    with _RssPeak(interval=0.002) as peak:
+        block = mmap.mmap(-1, 100 * 2**20)
+        np.frombuffer(block, dtype=np.uint8)[:] = 1
+        time.sleep(0.3)
+        block.close()
     assert peak.peak_bytes is not None and peak.peak_bytes > 80 * 2**20
