@@ -155,8 +155,6 @@ def test_the_process_command_line_freezes_the_collector_at_the_end_an_in_process
 
 
 def test_the_command_line_turns_numpys_huge_page_advice_off_unless_the_user_set_it():
-    import os
-
     code = "import o3drbf.cli, numpy, os; print(numpy._core.multiarray._get_madvise_hugepage(), os.environ.get('NUMPY_MADVISE_HUGEPAGE'))"
     env = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE"}
     off = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
