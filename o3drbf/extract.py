@@ -93,7 +93,8 @@ def mesh_evaluator(surface, eps: float = MESH_EPS, min_centres: int = GRID_EVALU
     kernel with at least ``min_centres`` centres, a new one at relative
     tolerance ``eps``.  Otherwise the surface's own evaluator, or the direct
     sum from cubic tables (:meth:`ImplicitSurface.evaluate_box` with
-    ``approximate``).
+    ``approximate``).  A grid sum is kept in ``surface.meshing`` and
+    returned again by the next call with the same ``eps``.
 
     Parameters
     ----------
@@ -110,6 +111,10 @@ def mesh_evaluator(surface, eps: float = MESH_EPS, min_centres: int = GRID_EVALU
         "grid" or "table"; ``func.cover(lo, hi)`` prepares it for targets in
         that box (see :meth:`o3drbf.solvers.fast.GridSum.cover`).
     """
+
+    kept = getattr(surface, "meshing", None)
+    if kept is not None and getattr(kept, "eps", None) == eps:
+        return kept
 
     def table(pts, gradient=False):
         return surface.evaluate_box(pts, gradient=gradient, approximate=True)
@@ -151,6 +156,9 @@ def mesh_evaluator(surface, eps: float = MESH_EPS, min_centres: int = GRID_EVALU
     grid.kind = "grid"
     grid.operator = op
     grid.cover = op.cover
+    grid.eps = eps
+    if hasattr(surface, "meshing"):
+        surface.meshing = grid  # kept for the next caller (the robust pass, then marching cubes)
     return grid
 
 

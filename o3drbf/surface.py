@@ -100,6 +100,9 @@ class ImplicitSurface(DataCoordinates):
     metadata: dict = field(default_factory=dict)
     #: Optional faster evaluator ``(box_points, gradient) -> values[, grads]`` (e.g. fast multipole).
     evaluator: object = field(default=None, repr=False, compare=False)
+    #: The meshing evaluator (:func:`o3drbf.extract.mesh_evaluator`) once built for this surface, so that the
+    #: robust pass's residuals and marching cubes share one grid sum; not saved.
+    meshing: object = field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
         self.centres = np.ascontiguousarray(self.centres, dtype=float)

@@ -150,14 +150,20 @@ def _distance(f: np.ndarray, g: np.ndarray) -> np.ndarray:
 def constraint_residuals(surface, constraints: Constraints, index: np.ndarray) -> np.ndarray:
     """:func:`geometric_residuals` at ``constraints.points[index]``.
 
-    When the surface's centres are the constraints' points (a fit of all of them, evaluated
-    directly), the sums come from :func:`o3drbf.rbf.compiled.direct_sum_at_centres`, which
+    When the surface carries its meshing grid sum (``surface.meshing``, from
+    :func:`o3drbf.extract.mesh_evaluator`), f and grad f come from it (its tolerance, a
+    fraction of max |f|, is far below the residual scale).  Otherwise, when the surface's
+    centres are the constraints' points (a fit of all of them, evaluated directly), the sums come from :func:`o3drbf.rbf.compiled.direct_sum_at_centres`, which
     evaluates each pair of centres once for both ends; they agree with ``evaluate_box``'s to
     rounding.  Otherwise (a fast evaluator, constraints left out, a kernel without a compiled
     form) this is ``geometric_residuals(surface, constraints.points[index])``.
     """
     from o3drbf.rbf import compiled
 
+    meshing = getattr(surface, "meshing", None)
+    if getattr(meshing, "kind", None) == "grid":  # the meshing grid sum, built already: far cheaper than a direct sum
+        f, g = meshing(constraints.points[index], gradient=True)
+        return _distance(f, g)
     centres = getattr(surface, "centres", None)
     if (getattr(surface, "evaluator", None) is None and centres is not None and compiled.supports(surface.kernel)
             and centres.shape == constraints.points.shape and np.array_equal(centres, constraints.points)):

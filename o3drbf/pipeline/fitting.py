@@ -270,6 +270,11 @@ def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = F
     if options.robust:
         from o3drbf.constraints.robust import robust_reweight
 
+        if resolution is not None and surface.evaluator is None:
+            from o3drbf.extract import mesh_evaluator
+
+            mesh_evaluator(surface)  # the grid marching cubes will use, built now: the first residuals come from it
+
         # The residual scale never falls below half a constraint spacing, so
         # clean data are not reweighted (no refit when no residual reaches
         # Tukey's c times the scale).

@@ -95,6 +95,9 @@ def mesh_surface(surface: ImplicitSurface, options: ExtractOptions = ExtractOpti
             f"swamp the data (lambda_surface {lam:g} vs phi(0) = {surface.kernel.value_at_zero:.3g}; lower lambda_surface, --lambda-surface), "
             "or check the normals/exterior constraints"
         ) from None
+    finally:
+        if hasattr(surface, "meshing"):
+            surface.meshing = None  # the meshing grid (shared with the robust pass) is not kept with the result
 
 
 def colour(mesh, data: PointSet):

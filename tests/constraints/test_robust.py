@@ -151,3 +151,32 @@ def test_residuals_at_the_constraints_are_evaluate_boxs_to_rounding(fits):
     # a surface whose centres are not the constraints (one left out): evaluate_box itself
     fewer = fitter(Constraints(dirty.points[1:], dirty.values[1:], dirty.smoothing[1:], dirty.kind[1:]))[0]
     np.testing.assert_array_equal(constraint_residuals(fewer, dirty, surf), geometric_residuals(fewer, dirty.points[surf]))
+
+
+def test_residuals_from_the_meshing_grid_when_the_surface_has_one(fits):
+    """A surface carrying its meshing grid sum (extract.mesh_evaluator) gives the first residuals from it, once,
+    within a small fraction of the residual scale of the direct sums."""
+    from o3drbf.constraints.robust import constraint_residuals
+    from o3drbf.extract import mesh_evaluator
+
+    dirty, _, _, _, (plain, _), _ = fits
+    surf = np.flatnonzero(dirty.kind == SURFACE)
+    reference = constraint_residuals(plain, dirty, surf)  # no grid yet: the direct pair-once sums
+    grid = mesh_evaluator(plain, min_centres=1)
+    assert grid.kind == "grid" and plain.meshing is grid and mesh_evaluator(plain, min_centres=1) is grid
+    calls = []
+
+    def counting(points, gradient=False):
+        calls.append((len(points), gradient))
+        return grid(points, gradient)
+
+    counting.kind = "grid"
+    plain.meshing = counting
+    try:
+        got = constraint_residuals(plain, dirty, surf)
+    finally:
+        plain.meshing = None
+    assert calls == [(len(surf), True)]
+    # Within 1 % of the Huber threshold (3 s, s = 0.002 here) plus 0.5 % of the residual (the grid's
+    # gradients are ~1e-3 relative): no weight decision moves.
+    assert (np.abs(got - reference) <= 0.01 * 3 * 0.002 + 0.005 * reference).all()

@@ -158,3 +158,29 @@ def test_repeated_points_are_merged_with_a_note():
     p, n = Sphere(1.0).sample(400, seed=2)
     r = o3drbf.reconstruct(np.vstack([p, p[:7]]), np.vstack([n, n[:7]]), surface_count=100, extract_mesh=False, outliers="none")
     assert r.report.duplicates_merged == 7 and r.report.points == 400 and r.report.input_points == 407
+
+
+def test_the_robust_pass_and_marching_cubes_share_one_grid_sum(monkeypatch):
+    """A meshed fit builds one meshing grid sum: the robust pass's first residuals come from it (no direct sum at
+    the centres), marching cubes reuse it, and the result does not keep it."""
+    from o3drbf.rbf import compiled
+    from o3drbf.solvers import fast
+
+    built = []
+    real = fast.GridSum
+
+    class Counting(real):
+        def __init__(self, *args, **kwargs):
+            built.append(kwargs.get("eps"))
+            super().__init__(*args, **kwargs)
+
+    def refused(*args, **kwargs):
+        raise AssertionError("direct sums at the centres: the meshing grid was not used")
+
+    monkeypatch.setattr(fast, "GridSum", Counting)
+    monkeypatch.setattr(compiled, "direct_sum_at_centres", refused)
+    p, n = Torus(0.6, 0.25).sample(6000, noise=0.002, seed=4)
+    r = o3drbf.reconstruct(p, n, surface_count=1500, resolution=48)
+    assert r.report.solver == "dense" and r.report.robust is not None and r.report.robust["rounds"] == 0
+    assert built == [o3drbf.extract.MESH_EPS] and r.surface.meshing is None
+    assert r.mesh.is_watertight()
