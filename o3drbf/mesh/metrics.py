@@ -26,7 +26,7 @@ from scipy import sparse
 from scipy.spatial import cKDTree
 
 from o3drbf.mesh.arrays import mesh_arrays, raycasting_scene, triangle_components, unique_edges
-from o3drbf.mesh.intersections import self_intersecting_pairs
+from o3drbf.mesh.intersections import nonmanifold_vertices, self_intersecting_pairs
 from o3drbf.validation import as_points, check_number
 
 __all__ = [
@@ -479,7 +479,7 @@ def mesh_report(mesh: Any, self_intersections: bool = True) -> dict[str, Any]:
             Every edge is used by at most two triangles (boundary allowed).
         ``vertex_manifold``
             Open3D's ``is_vertex_manifold`` (the triangles around each vertex
-            form one fan).
+            form one fan; :func:`o3drbf.mesh.intersections.nonmanifold_vertices`).
         ``closed``
             Every edge is used by exactly two triangles (no boundary).
         ``watertight``
@@ -528,7 +528,7 @@ def mesh_report(mesh: Any, self_intersections: bool = True) -> dict[str, Any]:
 
     edge_manifold = bool(counts.max() <= 2)
     closed = bool((counts == 2).all())
-    vertex_manifold = bool(mesh.is_vertex_manifold())
+    vertex_manifold = len(nonmanifold_vertices(tris, verts.shape[0])) == 0
     n_self = None
     watertight = closed and vertex_manifold
     if self_intersections:

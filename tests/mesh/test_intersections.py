@@ -11,7 +11,7 @@ import open3d as o3d
 import pytest
 from skimage.measure import marching_cubes
 
-from o3drbf.mesh.intersections import is_watertight, self_intersecting_pairs
+from o3drbf.mesh.intersections import is_watertight, nonmanifold_vertices, self_intersecting_pairs
 from o3drbf.mesh.metrics import mesh_report
 
 # --------------------------------------------------------------------------
@@ -326,3 +326,39 @@ def test_many_cells_tested_in_parallel_chunks_find_every_pair():
     mesh = a + b + c
     assert len(mesh.triangles) > 20_000
     assert check_same(mesh) > 500
+
+
+def _vertex_soup(seed, n_vertices, n_triangles):
+    """Triangles of three distinct vertices drawn from a few: fans, pinches, non-manifold edges, repeats."""
+    rng = np.random.default_rng(seed)
+    return np.array([rng.choice(n_vertices, 3, replace=False) for _ in range(n_triangles)], dtype=np.int64)
+
+
+def _open3d_nonmanifold(verts, tris):
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(verts), o3d.utility.Vector3iVector(tris.astype(np.int32)))
+    return np.sort(np.asarray(mesh.get_non_manifold_vertices()))
+
+
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("n_vertices, n_triangles", [(6, 4), (8, 10), (12, 20), (30, 40)])
+def test_nonmanifold_vertices_are_open3ds_on_soups(seed, n_vertices, n_triangles):
+    tris = _vertex_soup(seed, n_vertices, n_triangles)
+    verts = np.random.default_rng(seed).normal(size=(n_vertices, 3))
+    np.testing.assert_array_equal(nonmanifold_vertices(tris, n_vertices), _open3d_nonmanifold(verts, tris))
+
+
+def test_nonmanifold_vertices_of_pinched_and_glued_meshes():
+    sphere = o3d.geometry.TriangleMesh.create_sphere(1.0, 12)
+    verts, tris = np.asarray(sphere.vertices), np.asarray(sphere.triangles).astype(np.int64)
+    assert nonmanifold_vertices(tris, len(verts)).size == 0
+    # two spheres glued at one vertex: that vertex's link is two circles
+    glued = np.vstack([tris, tris + len(verts)])
+    glued[glued == len(verts) + 5] = 5
+    both = np.vstack([verts, verts + [2.0, 0, 0]])
+    assert nonmanifold_vertices(glued, len(both)).tolist() == [5] == _open3d_nonmanifold(both, glued).tolist()
+    # an open mesh (a fan cut open) stays manifold, as in Open3D; an unused vertex is skipped
+    cut = tris[np.any(tris == 0, axis=1)][1:]
+    assert nonmanifold_vertices(cut, len(verts) + 1).tolist() == _open3d_nonmanifold(np.vstack([verts, [[9, 9, 9]]]), cut).tolist() == []
+    # mesh_report's vertex_manifold follows it
+    glued_mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(both), o3d.utility.Vector3iVector(glued.astype(np.int32)))
+    assert mesh_report(glued_mesh)["vertex_manifold"] is False and not glued_mesh.is_vertex_manifold()
