@@ -200,13 +200,27 @@ def solve_fast(kernel: Kernel, centres, y, lam, rtol: float | None = None, max_i
     1e-6 by default and at most 200 iterations, logged; ``operator`` (a prebuilt product) is passed on, and
     so are ``start["x0"]`` (a starting ``[w; p]``) and ``start["preconditioner"]`` (an earlier solve's
     ``TwoLevel``, reused) when given; the preconditioner used is put back in ``start`` (never in the
-    solution's ``info``: it holds memory)."""
+    solution's ``info``: it holds memory).
+
+    The system is solved with its centres in :func:`o3drbf.solvers.fast.spatial_order` (the
+    sparse parts then read nearby memory); ``operator`` must be built on ``centres`` in that
+    order, and ``x0`` and the weights returned are in the caller's order."""
     from o3drbf.solvers import fast
 
     t0 = time.perf_counter()
-    sol = fast.solve(kernel, centres, y, lam, rtol=1e-6 if rtol is None else rtol, max_iterations=min(max_iterations, 200),
-                     progress=progress, backend=backend, operator=operator, x0=(start or {}).get("x0"),
+    n = len(centres)
+    order = fast.spatial_order(centres)
+    if operator is not None and getattr(operator, "centres", None) is not None and not np.array_equal(operator.centres, centres[order]):
+        raise ValueError("operator must be built on the centres in o3drbf.solvers.fast.spatial_order(centres)")
+    x0 = (start or {}).get("x0")
+    if x0 is not None:
+        x0 = np.concatenate([x0[:n][order], x0[n:]])
+    sol = fast.solve(kernel, centres[order], y[order], lam[order], rtol=1e-6 if rtol is None else rtol,
+                     max_iterations=min(max_iterations, 200), progress=progress, backend=backend, operator=operator, x0=x0,
                      preconditioner_object=(start or {}).get("preconditioner"))
+    weights = np.empty_like(sol.weights)
+    weights[order] = sol.weights
+    sol.weights = weights
     used = sol.info.pop("preconditioner_object", None)
     if start is not None:
         start["preconditioner"] = used
@@ -367,7 +381,8 @@ class Refitter:
             rtol = o.get("rtol") or 1e-6  # before the products are built: what they, the preconditioner and FGMRES take
             self.checked or fast.check_memory(len(self.centres), eps=fast.product_tolerance(rtol), memory_limit=o.get("memory_limit"),
                               kernel=self.kernel, centres=self.centres, evaluation=False)
-            self.operator = fast.fast_operator(self.kernel, self.centres, eps=fast.product_tolerance(o.get("rtol") or 1e-6),
+            self.operator = fast.fast_operator(self.kernel, self.centres[fast.spatial_order(self.centres)],
+                                               eps=fast.product_tolerance(o.get("rtol") or 1e-6),
                                                backend=o.get("backend", "auto"), memory_limit=o.get("memory_limit"))
         finite = lam[keep]
         big = DROPPED_SMOOTHING * max(float(finite.max()) if finite.size else 1.0, 1e-12)

@@ -80,6 +80,19 @@ def test_budgets_follow_available_memory(machine):
     assert not any(w in str(info.value) for w in API_WORDS)
 
 
+def test_stored_near_fields_follow_available_memory(machine):
+    """Whether the products keep their near fields is 30 % of the memory limit (80 % of what is available),
+    with no fixed cap: 6 GB of near fields are stored on a machine with 40 GB free, not on one with 16 GB."""
+    from o3drbf.solvers.fast import neighbours
+
+    entries = 6 * GB / (neighbours.NNZ_BYTES * (1 + neighbours.COMPANION_SHARE))
+    machine(40 * GB)
+    assert neighbours.store_near(entries)  # 6 GB <= 0.3 * 32 GB
+    machine(16 * GB)
+    assert not neighbours.store_near(entries)  # 6 GB > 0.3 * 12.8 GB
+    assert neighbours.store_near(entries, limit=int(20.1 * GB)) and not neighbours.store_near(entries, limit=int(19.9 * GB))
+
+
 def test_plan_matches_the_arrays_a_grid_allocates():
     """memory_plan's pieces against the real arrays: the kernel transform of the grid and the
     near-field matrix of the products at the centres (within 15 %)."""

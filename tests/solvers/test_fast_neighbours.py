@@ -67,3 +67,28 @@ def test_self_sum_evaluates_each_pair_once_and_matches_the_brute_force_sum(cloud
     want = (np.where(d <= radius, np.cos(d), 0.0) * w).sum(axis=1)
     got = CellList(pts, radius).self_sum(w, tab, dr, chunks=chunks)
     assert np.abs(got - want).max() < 1e-6 * np.abs(w).sum()
+
+
+def test_spatial_order_keeps_neighbours_close_in_memory():
+    """A permutation, deterministic, and near points get near indices: the index gap between each point and
+    its 16 nearest is a small fraction of N (in the torus sample's own order it is about N / 3)."""
+    from scipy.spatial import cKDTree
+
+    from o3drbf.solvers.fast.neighbours import spatial_order
+    from o3drbf.synthetic.shapes import Torus
+
+    p, _ = Torus().sample(20_000, seed=3)
+    order = spatial_order(p)
+    assert np.array_equal(np.sort(order), np.arange(len(p))) and np.array_equal(order, spatial_order(p))
+    near = cKDTree(p).query(p, k=17)[1][:, 1:]
+
+    def gap(points_order):
+        place = np.empty(len(p), np.int64)
+        place[points_order] = np.arange(len(p))
+        return float(np.median(np.abs(place[near] - place[:, None])))
+
+    assert gap(np.arange(len(p))) > len(p) / 5
+    assert gap(order) < len(p) / 200
+    with pytest.raises(ValueError, match="bits"):
+        spatial_order(p, bits=0)
+    assert spatial_order(np.zeros((0, 3))).size == 0 and spatial_order(np.zeros((3, 3))).tolist() == [0, 1, 2]

@@ -184,7 +184,7 @@ def test_lower_kernel_matrix_is_the_full_matrix_lower_triangle(n):
 
 
 def test_fast_refits_reuse_the_first_refits_preconditioner_set_to_the_new_smoothing():
-    from o3drbf.solvers.fast import TwoLevel, fast_operator
+    from o3drbf.solvers.fast import TwoLevel, fast_operator, spatial_order
 
     kernel = MultiOrder(10, 0.01)
     x, y, lam0 = problem(n=8000, seed=2)
@@ -200,10 +200,12 @@ def test_fast_refits_reuse_the_first_refits_preconditioner_set_to_the_new_smooth
     keep, sol = session.solve(lam)
     assert session.start["preconditioner"] is prec and sol.residual <= 1e-6
     # its local step is the one a new preconditioner for that smoothing builds (independent: built afresh)
-    lam[[5, 2000]] = 1e6  # a coarse centre's too (the coarse level factored again)
-    assert np.isin([5, 2000], prec.coarse).any()
-    prec.set_smoothing(lam)
-    fresh = TwoLevel(prec.fast, lam)
+    # a coarse centre's too (the coarse level factored again); the preconditioner works on the centres in
+    # spatial order (fast.spatial_order), so lambda goes to it in that order
+    order = spatial_order(x)
+    lam[order[prec.coarse[[0, 7]]]] = 1e6
+    prec.set_smoothing(lam[order])
+    fresh = TwoLevel(prec.fast, lam[order])
     assert np.array_equal(prec.near_diag, fresh.near_diag)
     assert abs(prec.near - fresh.near).max() == 0
     r = np.random.default_rng(4).normal(size=len(x))
@@ -211,3 +213,20 @@ def test_fast_refits_reuse_the_first_refits_preconditioner_set_to_the_new_smooth
     # a plain solve keeps no preconditioner (it would hold its memory)
     op = fast_operator(kernel, x, eps=1e-7)
     assert "preconditioner_object" not in solve(kernel, x, y, lam0, method="fast").info and op.n == len(x)
+
+
+def test_fast_solves_run_in_spatial_order_and_answer_in_the_callers():
+    """solve_fast permutes the system to fast.spatial_order and back: the weights match a dense solve's in the
+    caller's order, a start x0 is taken in the caller's order, and an operator on other orders is refused."""
+    from o3drbf.solvers import fast, solve_fast
+
+    kernel = MultiOrder(10, 0.01)
+    x, y, lam = problem(n=4000, seed=3)
+    assert not np.array_equal(fast.spatial_order(x), np.arange(len(x)))
+    dense = solve(kernel, x, y, lam, method="dense")
+    sol = solve_fast(kernel, x, y, lam, rtol=1e-8)
+    np.testing.assert_allclose(sol.weights, dense.weights, rtol=0, atol=1e-4 * np.abs(dense.weights).max())
+    again = solve_fast(kernel, x, y, lam, rtol=1e-8, start={"x0": np.concatenate([sol.weights, sol.poly])})
+    assert again.iterations <= 1
+    with pytest.raises(ValueError, match="spatial_order"):
+        solve_fast(kernel, x, y, lam, operator=fast.fast_operator(kernel, x))

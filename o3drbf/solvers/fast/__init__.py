@@ -131,12 +131,13 @@ from o3drbf.solvers.fast.neighbours import (
     default_neighbours,
     neighbour_radius,
     product_neighbours,
+    spatial_order,
 )
 from o3drbf.solvers.fast.precondition import TwoLevel
 from o3drbf.solvers.fast.solver import SolveSettings, solve
 from o3drbf.solvers.fast.tolerance import DEFAULT_EPS, MESH_SHIFT, RELAX_CAP, SOLVE_RTOL, clip_eps, mesh_tolerance, product_tolerance
 
-__all__ = ["FastSum", "TwoLevel", "solve", "SolveSettings", "make_evaluator", "fast_memory", "default_workers", "DEFAULT_EPS",
+__all__ = ["FastSum", "TwoLevel", "solve", "spatial_order", "SolveSettings", "make_evaluator", "fast_memory", "default_workers", "DEFAULT_EPS",
            "GridSum", "fast_operator", "grid_bytes", "outside_centres", "GRID_BUDGET", "product_tolerance", "check_memory",
            "grid_budget", "memory_plan", "grid_plan", "split_design", "fitting_fraction", "product_neighbours",
            "DIRECT_PAIRS", "HAVE_GRID", "NNZ_BYTES", "PRODUCT_NEIGHBOURS_MAX", "RELAX_CAP", "SPARSE_BUDGET",

@@ -21,7 +21,9 @@ __all__ = ["TwoLevel", "TwoLevelSettings"]
 
 
 def _uniform_subset(points: np.ndarray, count: int) -> np.ndarray:
-    """About ``count`` indices spread uniformly over the points (one per voxel)."""
+    """About ``count`` indices spread uniformly over the points: in each occupied voxel of a grid
+    sized for that count, the point nearest the voxel's centre (ties to the lower index), so
+    that the choice does not depend on the points' order."""
     n = len(points)
     if count >= n:
         return np.arange(n)
@@ -32,19 +34,27 @@ def _uniform_subset(points: np.ndarray, count: int) -> np.ndarray:
     hi_h, lo_h = span, span * 1e-4
     for _ in range(30):
         h = math.sqrt(hi_h * lo_h)
-        key = np.floor((points - lo) / h).astype(np.int64)
-        dims = key.max(axis=0) + 1
-        flat = (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]  # one integer a voxel, in the rows' order
-        _, first = np.unique(flat, return_index=True)
-        if best is None or abs(len(first) - count) < abs(len(best) - count):
-            best = first
-        if len(first) > count:
+        occupied = len(np.unique(_voxels(points, lo, h)[0]))
+        if best is None or abs(occupied - count) < abs(best[1] - count):
+            best = (h, occupied)
+        if occupied > count:
             lo_h = h
         else:
             hi_h = h
-        if abs(len(first) - count) <= 0.05 * count:
+        if abs(occupied - count) <= 0.05 * count:
             break
-    return np.sort(best)
+    flat, key = _voxels(points, lo, best[0])
+    d2 = (((points - lo) / best[0] - (key + 0.5)) ** 2).sum(axis=1)
+    order = np.lexsort((np.arange(n), d2, flat))  # by voxel, then nearest its centre, then index
+    f = flat[order]
+    return np.sort(order[np.r_[True, f[1:] != f[:-1]]])
+
+
+def _voxels(points, lo, h):
+    """(one integer a voxel of side ``h`` from ``lo``, in the rows' order; the voxels' integer coordinates)."""
+    key = np.floor((points - lo) / h).astype(np.int64)
+    dims = key.max(axis=0) + 1
+    return (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2], key
 
 
 @njit(cache=True)
