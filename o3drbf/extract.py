@@ -94,7 +94,7 @@ def mesh_evaluator(surface, eps: float = MESH_EPS, min_centres: int = GRID_EVALU
     tolerance ``eps``.  Otherwise the surface's own evaluator, or the direct
     sum from cubic tables (:meth:`ImplicitSurface.evaluate_box` with
     ``approximate``).  A grid sum is kept in ``surface.meshing`` and
-    returned again by the next call with the same ``eps``.
+    returned again by the next call with the same ``eps`` and ``min_centres``.
 
     Parameters
     ----------
@@ -113,7 +113,7 @@ def mesh_evaluator(surface, eps: float = MESH_EPS, min_centres: int = GRID_EVALU
     """
 
     kept = getattr(surface, "meshing", None)
-    if kept is not None and getattr(kept, "eps", None) == eps:
+    if kept is not None and getattr(kept, "settings", None) == (eps, min_centres):
         return kept
 
     def table(pts, gradient=False):
@@ -156,7 +156,7 @@ def mesh_evaluator(surface, eps: float = MESH_EPS, min_centres: int = GRID_EVALU
     grid.kind = "grid"
     grid.operator = op
     grid.cover = op.cover
-    grid.eps = eps
+    grid.settings = (eps, min_centres)
     if hasattr(surface, "meshing"):
         surface.meshing = grid  # kept for the next caller (the robust pass, then marching cubes)
     return grid
