@@ -149,6 +149,7 @@ SLOW_TESTS = {
     "test_refit.py": {
         "test_fast_refits_start_from_the_previous_solution_and_agree_with_a_dense_solve",
         "test_fast_refits_reuse_the_first_refits_preconditioner_set_to_the_new_smoothing",
+        "test_fast_solves_run_in_spatial_order_and_answer_in_the_callers",
         "test_lower_kernel_matrix_is_the_full_matrix_lower_triangle", "test_many_changes_solve_afresh_and_agree",
         "test_refits_reuse_back_substitutions_and_stay_exact", "test_robust_refits_by_update_equal_refits_by_fresh_fits",
         "test_woodbury_update_equals_a_fresh_solve"
