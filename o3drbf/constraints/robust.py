@@ -153,8 +153,9 @@ def constraint_residuals(surface, constraints: Constraints, index: np.ndarray) -
     When the surface carries its meshing grid sum (``surface.meshing``, from
     :func:`o3drbf.extract.mesh_evaluator`), f and grad f come from it (its tolerance, a
     fraction of max |f|, is far below the residual scale).  Otherwise, when the surface's
-    centres are the constraints' points (a fit of all of them, evaluated directly), the sums come from :func:`o3drbf.rbf.compiled.direct_sum_at_centres`, which
-    evaluates each pair of centres once for both ends; they agree with ``evaluate_box``'s to
+    centres are the constraints' points (a fit of all of them, evaluated directly), the sums
+    come from :func:`o3drbf.rbf.compiled.direct_sum_at_centres`, which evaluates each pair of
+    centres once for both ends; they agree with ``evaluate_box``'s to
     rounding.  Otherwise (a fast evaluator, constraints left out, a kernel without a compiled
     form) this is ``geometric_residuals(surface, constraints.points[index])``.
     """

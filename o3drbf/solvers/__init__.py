@@ -203,13 +203,16 @@ def solve_fast(kernel: Kernel, centres, y, lam, rtol: float | None = None, max_i
     solution's ``info``: it holds memory).
 
     The system is solved with its centres in :func:`o3drbf.solvers.fast.spatial_order` (the
-    sparse parts then read nearby memory); ``operator`` must be built on ``centres`` in that
-    order, and ``x0`` and the weights returned are in the caller's order."""
+    sparse parts then read nearby memory; ``start["order"]``, when given, is that order, not
+    computed again); ``operator`` must be built on ``centres`` in that order, and ``x0`` and the
+    weights returned are in the caller's order."""
     from o3drbf.solvers import fast
 
     t0 = time.perf_counter()
     n = len(centres)
-    order = fast.spatial_order(centres)
+    order = (start or {}).get("order")
+    if order is None:
+        order = fast.spatial_order(centres)
     if operator is not None and getattr(operator, "centres", None) is not None and not np.array_equal(operator.centres, centres[order]):
         raise ValueError("operator must be built on the centres in o3drbf.solvers.fast.spatial_order(centres)")
     x0 = (start or {}).get("x0")
@@ -319,7 +322,9 @@ class Refitter:
         self.q = q
         self.factor = None
         self.operator = None  # the fast method's products, built at its first solve
-        self.start = {}  # the fast method's last [w; p] ("x0") and its TwoLevel ("preconditioner"), set to each new smoothing
+        # The fast method's last [w; p] ("x0"), its TwoLevel ("preconditioner", set to each new smoothing)
+        # and the centres' spatial order ("order").
+        self.start = {}
         self.checked = bool(checked)
         limit = memory_limit_or_default(options.get("memory_limit"))
         self.method = method
@@ -381,7 +386,8 @@ class Refitter:
             rtol = o.get("rtol") or 1e-6  # before the products are built: what they, the preconditioner and FGMRES take
             self.checked or fast.check_memory(len(self.centres), eps=fast.product_tolerance(rtol), memory_limit=o.get("memory_limit"),
                               kernel=self.kernel, centres=self.centres, evaluation=False)
-            self.operator = fast.fast_operator(self.kernel, self.centres[fast.spatial_order(self.centres)],
+            self.start["order"] = fast.spatial_order(self.centres)  # the solves' order, once for every refit
+            self.operator = fast.fast_operator(self.kernel, self.centres[self.start["order"]],
                                                eps=fast.product_tolerance(o.get("rtol") or 1e-6),
                                                backend=o.get("backend", "auto"), memory_limit=o.get("memory_limit"))
         finite = lam[keep]

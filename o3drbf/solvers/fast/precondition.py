@@ -45,7 +45,7 @@ def _uniform_subset(points: np.ndarray, count: int) -> np.ndarray:
             break
     flat, key = _voxels(points, lo, best[0])
     d2 = (((points - lo) / best[0] - (key + 0.5)) ** 2).sum(axis=1)
-    order = np.lexsort((np.arange(n), d2, flat))  # by voxel, then nearest its centre, then index
+    order = np.lexsort((d2, flat))  # by voxel, then nearest its centre (a stable sort: then index)
     f = flat[order]
     return np.sort(order[np.r_[True, f[1:] != f[:-1]]])
 
