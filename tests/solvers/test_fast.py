@@ -408,7 +408,10 @@ def test_grid_solve_matches_dense():
 
 
 def test_mesh_tolerance_moves_the_surface_by_about_the_asked_fraction_of_a_cell():
-    # a fast solve stopped at mesh_tolerance against a tight one (independent truth: rtol 1e-8)
+    # a fast solve stopped at mesh_tolerance against the dense solve of the same system (independent truth)
+    from o3drbf.rbf.sums import polynomial_basis
+    from o3drbf.solvers import solve
+
     n = 8000
     rng = np.random.default_rng(3)
     d = rng.standard_normal((n, 3))
@@ -421,17 +424,15 @@ def test_mesh_tolerance_moves_the_surface_by_about_the_asked_fraction_of_a_cell(
     cell = 2.0 / 512  # (below the tolerance's cap)
     rtol = fast.mesh_tolerance(y, cell)
     assert rtol == pytest.approx(fast.MESH_SHIFT * cell * np.sqrt(n) / np.linalg.norm(y))
+    assert rtol > 10 * fast.SOLVE_RTOL  # looser than a solve to the default tolerance
     loose = fast.solve(kernel, x, y, lam, rtol=rtol)
-    tight = fast.solve(kernel, x, y, lam, rtol=1e-8, max_iterations=400)
-    assert loose.iterations < tight.iterations
-    from o3drbf.rbf.sums import polynomial_basis
-
+    exact = solve(kernel, x, y, lam, method="dense")
     q = polynomial_basis(x, kernel.polynomial_degree)
     f_loose = kernel_sum(kernel, x, loose.weights, x) + q @ loose.poly
-    f_tight = kernel_sum(kernel, x, tight.weights, x) + q @ tight.poly
-    shift = np.sqrt(np.mean((f_loose - f_tight)[surface] ** 2)) / cell  # |grad f| ~ 1: a value error is a shift
-    print(f"rtol {rtol:.2e}: {loose.iterations} vs {tight.iterations} iterations, rms shift {shift:.2e} cells")
-    assert shift <= 2 * fast.MESH_SHIFT
+    f_exact = kernel_sum(kernel, x, exact.weights, x) + q @ exact.poly
+    shift = np.sqrt(np.mean((f_loose - f_exact)[surface] ** 2)) / cell  # |grad f| ~ 1: a value error is a shift
+    print(f"rtol {rtol:.2e}: {loose.iterations} iterations, rms shift {shift:.2e} cells")
+    assert fast.MESH_SHIFT / 20 <= shift <= 2 * fast.MESH_SHIFT  # about the fraction asked (0.64 of it when written)
     assert fast.mesh_tolerance(np.zeros(10), cell) == fast.SOLVE_RTOL
     assert fast.mesh_tolerance(y, 1e3) == fast.RELAX_CAP
 
