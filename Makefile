@@ -23,8 +23,10 @@ demo: $(SETUP)
 samples: $(SETUP)
 	$(PY) samples/generate.py $(OUT)/samples
 
+# The whole suite in TEST_WORKERS processes (pytest-xdist; the slowest tests, compiling and end to end, run beside the rest).
+TEST_WORKERS ?= 2
 test: $(SETUP)
-	$(PY) -m pytest -q -rs
+	$(PY) -m pytest -q -rs -n $(TEST_WORKERS) --dist worksteal
 
 # The tests not marked slow (tests/conftest.py lists them): under a minute on 2 cores.
 test-fast: $(SETUP)
