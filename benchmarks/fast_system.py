@@ -11,7 +11,7 @@ iterations, the set-up and solve seconds, the residual history and the near fiel
 default path), e.g. ``--set o3drbf.solvers.fast.neighbours:NEAR_STORE_BYTES=0``.
 
     python benchmarks/fast_system.py dump torus900k.ply --surface-count 300000 sys300k.npz
-    python benchmarks/fast_system.py solve sys300k.npz [--iterations 200] [--input-order] [--json runs.jsonl]
+    python benchmarks/fast_system.py solve sys300k.npz [--iterations 200] [--input-order] [--preconditioner JSON] [--json runs.jsonl]
 """
 
 from __future__ import annotations
@@ -48,7 +48,8 @@ def dump(path: str, count: str | None, out: str) -> None:
     print(f"{out}: {len(c.points):,} constraints, rtol {rtol:.3g}, {params.kernel!r}")
 
 
-def solve(path: str, iterations: int, input_order: bool, record: str | None) -> None:
+def solve(path: str, iterations: int, input_order: bool, record: str | None, preconditioner: dict | None = None,
+          settings: list[str] = ()) -> None:
     import warnings
 
     import numpy as np
@@ -56,6 +57,7 @@ def solve(path: str, iterations: int, input_order: bool, record: str | None) -> 
     from o3drbf.rbf.kernels import make_kernel
     from o3drbf.solvers import solve_fast
     from o3drbf.solvers.fast import solve as solve_in_order
+    from o3drbf.solvers.fast import spatial_order
 
     d = np.load(path)
     kernel = make_kernel(**json.loads(str(d["kernel"])))
@@ -63,8 +65,10 @@ def solve(path: str, iterations: int, input_order: bool, record: str | None) -> 
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        if input_order:
-            sol = solve_in_order(kernel, d["centres"], d["values"], d["smoothing"], rtol=rtol, max_iterations=iterations)
+        if input_order or preconditioner is not None:
+            order = np.arange(len(d["centres"])) if input_order else spatial_order(d["centres"])
+            sol = solve_in_order(kernel, d["centres"][order], d["values"][order], d["smoothing"][order], rtol=rtol,
+                                 max_iterations=iterations, preconditioner=preconditioner)
         else:
             sol = solve_fast(kernel, d["centres"], d["values"], d["smoothing"], rtol, iterations)
     wall = time.perf_counter() - t0
@@ -73,7 +77,8 @@ def solve(path: str, iterations: int, input_order: bool, record: str | None) -> 
            "iterations": sol.iterations, "residual": sol.residual, "rtol": rtol, "seconds": round(wall, 2),
            "setup_seconds": round(info.get("setup_seconds", 0.0), 2), "solve_seconds": round(info.get("solve_seconds", 0.0), 2),
            "near_field": info["split"].get("near_field"), "grid": info["split"].get("grid"),
-           "coarse": info["preconditioner"].get("coarse"), "load": round(os.getloadavg()[0], 2)}
+           "coarse": info["preconditioner"].get("coarse"), "coarse_solve": info["preconditioner"].get("coarse_solve"),
+           "preconditioner": preconditioner, "set": list(settings), "load": round(os.getloadavg()[0], 2)}
     print(json.dumps(row))
     print("history (every 4th):", " ".join(f"{v:.1e}" for v in info.get("history", [])[::4]))
     if record:
@@ -93,6 +98,8 @@ def main(argv=None) -> int:
     s.add_argument("--iterations", type=int, default=200)
     s.add_argument("--input-order", action="store_true", help="the constraints' own order (fast.solve directly)")
     s.add_argument("--set", action="append", default=[], metavar="MODULE:NAME=VALUE", help="override a module constant first")
+    s.add_argument("--preconditioner", default=None, metavar="JSON",
+                   help="settings of the two-level preconditioner over its defaults, e.g. '{\"nested\": 8}'")
     s.add_argument("--json", default=None, help="append the result as one JSON line here")
     args = ap.parse_args(argv)
     if args.what == "dump":
@@ -103,7 +110,8 @@ def main(argv=None) -> int:
         name, value = rest.split("=", 1)
         setattr(importlib.import_module(module), name, eval(value, {}))  # a benchmark's own flag: numbers only
         print(f"set {module}.{name} = {value}")
-    solve(args.system, args.iterations, args.input_order, args.json)
+    solve(args.system, args.iterations, args.input_order, args.json,
+          None if args.preconditioner is None else json.loads(args.preconditioner), args.set)
     return 0
 
 

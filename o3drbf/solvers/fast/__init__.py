@@ -73,13 +73,13 @@ satisfy the polynomial constraint ``Q^T w = 0`` to rounding (the constant
 p0 is solved for, not projected away).  M is two-level multiplicative:
 
 1. coarse: a uniform subset C of about N/8 centres, the exact kernel system
-   on C factored by Cholesky, ``z_C = (Phi_CC + Lambda_C)^{-1} r_C``, while
-   |C| <= ``max_coarse`` (6,000).  Above it, up to N = 144,000 the coarse
-   level is capped at 6,000 centres; beyond, the coarse system on N/8
-   centres is solved by 8 nested FGMRES steps with products on C (grid /
-   FMM at 1e-3) preconditioned by the same scheme on C (recursively: its
-   own coarse level is min(N/64, 6,000) centres by Cholesky up to
-   N = 1,152,000, nested again beyond);
+   on C factored by Cholesky, ``z_C = (Phi_CC + Lambda_C)^{-1} r_C``; |C| is
+   capped at max(6,000, N/28) and at 12,000 (6,000 up to N = 168,000, 12,000
+   from N = 336,000: the Cholesky's set-up grows as |C|^3, the iterations a
+   larger C saves cost more as N grows; the installed OpenBLAS crashes in a
+   Cholesky above ``DENSE_MAX``).  With ``nested`` steps (not the default)
+   a larger coarse level is solved by nested FGMRES steps with products on
+   C preconditioned by the same scheme on C;
 2. residual update ``r' = r - (Phi + Lambda)[:, C] z_C`` (dense block when
    small, else a fast sum from the coarse centres);
 3. local: ``z += S^{-1} r'`` with S the near-field matrix of the *tapered*
@@ -90,7 +90,7 @@ p0 is solved for, not projected away).  M is two-level multiplicative:
 
 Product accuracy is relaxed as the residual falls (inexact Krylov, Bouras &
 Fraysse 2005): the product tolerance for an Arnoldi step is
-``eps * ||r_0|| / ||r_j||`` (at most ``RELAX_CAP``), and each restart
+``RELAX_SCALE * eps * ||r_0|| / ||r_j||`` (at most ``RELAX_CAP``), and each restart
 recomputes the true residual at full accuracy, so the reported residual is
 real.
 
@@ -135,11 +135,11 @@ from o3drbf.solvers.fast.neighbours import (
 )
 from o3drbf.solvers.fast.precondition import TwoLevel
 from o3drbf.solvers.fast.solver import SolveSettings, solve
-from o3drbf.solvers.fast.tolerance import DEFAULT_EPS, MESH_SHIFT, RELAX_CAP, SOLVE_RTOL, clip_eps, mesh_tolerance, product_tolerance
+from o3drbf.solvers.fast.tolerance import DEFAULT_EPS, MESH_SHIFT, RELAX_CAP, RELAX_SCALE, SOLVE_RTOL, clip_eps, mesh_tolerance, product_tolerance
 
 __all__ = ["FastSum", "TwoLevel", "solve", "spatial_order", "SolveSettings", "make_evaluator", "fast_memory", "default_workers", "DEFAULT_EPS",
            "GridSum", "fast_operator", "grid_bytes", "outside_centres", "GRID_BUDGET", "product_tolerance", "check_memory",
            "grid_budget", "memory_plan", "grid_plan", "split_design", "fitting_fraction", "product_neighbours",
-           "DIRECT_PAIRS", "HAVE_GRID", "NNZ_BYTES", "PRODUCT_NEIGHBOURS_MAX", "RELAX_CAP", "SPARSE_BUDGET",
+           "DIRECT_PAIRS", "HAVE_GRID", "NNZ_BYTES", "PRODUCT_NEIGHBOURS_MAX", "RELAX_CAP", "RELAX_SCALE", "SPARSE_BUDGET",
            "clip_eps", "default_neighbours", "fgmres", "long_part", "near_table", "neighbour_radius", "mesh_tolerance",
            "MESH_SHIFT", "SOLVE_RTOL"]

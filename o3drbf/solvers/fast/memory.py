@@ -118,26 +118,24 @@ def near_choice(plan: dict, store: bool | None = None, limit: int | None = None)
 
 def _twolevel_plan(kernel, centres, tree, lam_count, coarse_update_nnz, options=None, limit=None) -> int:
     """Bytes of a :class:`TwoLevel` on these centres with its default options (``options`` overrides)."""
-    from dataclasses import asdict
+    from dataclasses import replace
 
-    from o3drbf.solvers.fast.precondition import TwoLevelSettings
+    from o3drbf.solvers.fast.precondition import TwoLevelSettings, coarse_size
 
-    o = {**asdict(TwoLevelSettings()), **(options or {})}  # the preconditioner's own defaults
+    st = replace(TwoLevelSettings(), **(options or {}))  # the preconditioner's own defaults
     n = len(centres)
-    total = NNZ_BYTES * n * (o["neighbours"] + 1) + 64 * n  # the tapered near matrix (built in place by a cell list)
-    want = max(n // o["coarse_ratio"], 1)
-    nested = o["nested"] and n > o["exact_below"] and want > o["max_coarse"] and n > o["nested_ratio"] * o["max_coarse"]
-    mc = n if n <= o["exact_below"] else min(want, n if nested else o["max_coarse"], n)
+    total = NNZ_BYTES * n * (st.neighbours + 1) + 64 * n  # the tapered near matrix (built in place by a cell list)
+    mc, nested = coarse_size(n, st)
     if mc < n:
-        total += min(8 * n * mc, o["dense_budget"]) if 8 * n * mc <= o["dense_budget"] else int(coarse_update_nnz * mc / n) * NNZ_BYTES
+        total += 8 * n * mc if 8 * n * mc <= st.dense_budget else int(coarse_update_nnz * mc / n) * NNZ_BYTES
     if not nested:
         return int(total + 1.5 * 8 * mc * mc)
     sub_idx = np.sort(np.random.default_rng(2).choice(n, mc, replace=False))
     sub = centres[sub_idx]
     sub_tree = cKDTree(sub)
-    g = near_choice(grid_plan(kernel, sub, sub_tree, max(o["nested_eps"], 1e-8), neighbours=product_neighbours(mc)), limit=limit)
-    inner = _twolevel_plan(kernel, sub, sub_tree, mc, g["near"] / NNZ_BYTES, o, limit)
-    krylov = 2 * (o["nested"] + 2) * mc * 8
+    g = near_choice(grid_plan(kernel, sub, sub_tree, max(st.nested_eps, 1e-8), neighbours=product_neighbours(mc)), limit=limit)
+    inner = _twolevel_plan(kernel, sub, sub_tree, mc, g["near"] / NNZ_BYTES, options, limit)
+    krylov = 2 * (nested + 2) * mc * 8
     return int(total + g["grid"] + g["near"] + inner + krylov + _PER_CENTRE_BYTES * mc)  # (its work: below the outer's)
 
 

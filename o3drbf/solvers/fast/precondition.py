@@ -17,7 +17,7 @@ from o3drbf.solvers.fast.fmm import FastSum
 from o3drbf.solvers.fast.grid import GridSum, fast_operator
 from o3drbf.solvers.fast.neighbours import CellList, csr_matvec, njit
 
-__all__ = ["TwoLevel", "TwoLevelSettings"]
+__all__ = ["TwoLevel", "TwoLevelSettings", "coarse_size"]
 
 
 def _uniform_subset(points: np.ndarray, count: int) -> np.ndarray:
@@ -105,20 +105,40 @@ def _subset_operator(fast, subset, eps):
     return type(fast)(fast.kernel, cen)
 
 
+def coarse_size(n: int, settings: "TwoLevelSettings") -> tuple[int, int]:
+    """(coarse centres, nested steps) of a :class:`TwoLevel` on ``n`` centres with these settings.
+
+    All centres up to ``exact_below``; else ``n / coarse_ratio`` capped at
+    ``max(cap_floor, n / cap_ratio)`` and at ``max_coarse``, factored by
+    Cholesky (its set-up grows as the cube of the size, the iterations it
+    saves as ``n``); with ``nested`` steps and ``n > nested_ratio *
+    max_coarse``, ``n / coarse_ratio`` uncapped, solved by nested steps."""
+    st = settings
+    if n <= st.exact_below:
+        return n, 0
+    want = max(n // st.coarse_ratio, 1)
+    cap = min(st.max_coarse, max(st.cap_floor, n // st.cap_ratio))
+    if st.nested and want > cap and n > st.nested_ratio * st.max_coarse:
+        return min(want, n), int(st.nested)
+    return min(want, cap, n), 0
+
+
 @dataclass(frozen=True)
 class TwoLevelSettings:
     """The settings of :class:`TwoLevel` (each described there)."""
 
     neighbours: int = 64
     coarse_ratio: int = 8
-    max_coarse: int = 6000
+    max_coarse: int = 12000
+    cap_ratio: int = 28
+    cap_floor: int = 6000
     inner: int = 10
     eps: float = 1e-2
     dense_budget: int = 256 * 2**20
     select: str = "uniform"
     exact_below: int = 3000
     damping: float = 2.0
-    nested: int = 8
+    nested: int = 0
     nested_eps: float = 1e-3
     nested_rtol: float = 0.0
     nested_ratio: float = 24
@@ -137,10 +157,14 @@ class TwoLevel:
         are its fields by name, over it.
     neighbours : int
         k of the tapered near-field matrix.
-    coarse_ratio, max_coarse : int
-        Coarse level size ``N / coarse_ratio``, solved by Cholesky up to
-        ``max_coarse`` centres; above it, capped at ``max_coarse`` when
-        ``nested`` is 0, else solved by nested steps.
+    coarse_ratio, cap_ratio, cap_floor, max_coarse : int
+        Coarse level size ``N / coarse_ratio``, capped at ``max(cap_floor,
+        N / cap_ratio)`` and at ``max_coarse`` (:func:`coarse_size`), solved
+        by Cholesky: 6,000 centres up to N = 168,000, 12,000 from N = 336,000
+        (a larger coarse level saves iterations at large N, where they cost
+        most; its factorization's set-up grows as the cube of its size).
+        ``max_coarse`` is at most ``DENSE_MAX`` (the installed OpenBLAS
+        crashes in larger multithreaded Cholesky factorizations).
     inner : int
         CG steps on the near-field matrix.
     damping : float
@@ -156,17 +180,19 @@ class TwoLevel:
     dense_budget : int
         Bytes allowed for storing the (N, |C|) coarse-to-fine block.
     nested : int
-        FGMRES steps for a coarse level above ``max_coarse`` (0: cap it at
-        ``max_coarse`` instead).  The steps are preconditioned by a
-        TwoLevel on the coarse centres (same parameters, so recursive).
+        FGMRES steps for an uncapped coarse level (0, the default: capped
+        instead).  The steps are preconditioned by a TwoLevel on the coarse
+        centres (same parameters, so recursive).  At 333,000 centres 8
+        nested steps on 41,600 took as many iterations as a 12,000-centre
+        Cholesky, each twice as long.
     nested_eps : float
         Tolerance of the products on the coarse centres (nested level).
     nested_rtol : float
         Relative residual that stops the nested steps early (0: always
         ``nested`` steps).
     nested_ratio : float
-        Nest only when ``N > nested_ratio * max_coarse`` (144,000 by
-        default); below it the coarse level is capped.
+        With ``nested`` steps, nest only when ``N > nested_ratio *
+        max_coarse``; below it the coarse level is capped.
     """
 
     def __init__(self, fast: FastSum, lam, settings: TwoLevelSettings | None = None, **overrides):
@@ -174,9 +200,13 @@ class TwoLevel:
         if unknown:
             raise ValueError(f"unknown preconditioner setting(s) {', '.join(unknown)}; valid: {', '.join(f.name for f in fields(TwoLevelSettings))}")
         st = replace(settings or TwoLevelSettings(), **overrides)
-        neighbours, coarse_ratio, max_coarse, inner, eps = st.neighbours, st.coarse_ratio, st.max_coarse, st.inner, st.eps
-        dense_budget, select, exact_below, damping = st.dense_budget, st.select, st.exact_below, st.damping
-        nested, nested_eps, nested_rtol, nested_ratio = st.nested, st.nested_eps, st.nested_rtol, st.nested_ratio
+        from o3drbf.solvers.dense import DENSE_MAX
+
+        if st.max_coarse > DENSE_MAX:
+            raise ValueError(f"max_coarse {st.max_coarse} is above {DENSE_MAX}: the installed OpenBLAS crashes in larger Cholesky "
+                             "factorizations; use nested steps for a larger coarse level")
+        neighbours, inner, eps, dense_budget, select, damping = st.neighbours, st.inner, st.eps, st.dense_budget, st.select, st.damping
+        nested_eps, nested_rtol = st.nested_eps, st.nested_rtol
         kernel, x = fast.kernel, fast.centres
         n = len(x)
         self.fast, self.lam, self.inner, self.eps = fast, np.asarray(lam, float), int(inner), eps
@@ -193,9 +223,7 @@ class TwoLevel:
         self.near_diag = np.asarray(diag, dtype=float)
         self.radius = radius
         # Coarse level.
-        want = max(n // coarse_ratio, 1)
-        self.nested = int(nested) if n > exact_below and want > max_coarse and n > nested_ratio * max_coarse else 0
-        mc = n if n <= exact_below else min(want, n if self.nested else max_coarse, n)
+        mc, self.nested = coarse_size(n, st)
         if select == "random" and mc < n:
             self.coarse = np.sort(np.random.default_rng(0).choice(n, mc, replace=False))
         else:

@@ -17,7 +17,7 @@ from o3drbf.solvers.fast.fmm import FastSum
 from o3drbf.solvers.fast.grid import fast_operator
 from o3drbf.solvers.fast.memory import check_memory
 from o3drbf.solvers.fast.precondition import TwoLevel
-from o3drbf.solvers.fast.tolerance import RELAX_CAP, clip_eps, product_tolerance
+from o3drbf.solvers.fast.tolerance import RELAX_CAP, RELAX_SCALE, clip_eps, product_tolerance
 
 __all__ = ["solve", "SolveSettings"]
 
@@ -134,7 +134,7 @@ def solve(kernel: Kernel, centres, y, lam, settings: SolveSettings | None = None
 
     def product(v, rel):
         w, p = v[:n], v[n:]
-        e = max(eps, min(RELAX_CAP, eps * rel)) if relax else eps
+        e = max(eps, min(RELAX_CAP, RELAX_SCALE * eps * rel)) if relax else eps
         top = fast.matvec(w, eps=e) + lam * w + q @ p
         return np.concatenate([top, q.T @ w])
 

@@ -7,12 +7,17 @@ import math
 
 import numpy as np
 
-__all__ = ["DEFAULT_EPS", "RELAX_CAP", "MESH_SHIFT", "SOLVE_RTOL", "clip_eps", "product_tolerance", "mesh_tolerance"]
+__all__ = ["DEFAULT_EPS", "RELAX_CAP", "RELAX_SCALE", "MESH_SHIFT", "SOLVE_RTOL", "clip_eps", "product_tolerance", "mesh_tolerance"]
 
 #: Default relative tolerance of fast sums (evaluation).
 DEFAULT_EPS = 1e-6
 #: Loosest product tolerance the relaxation may reach.
 RELAX_CAP = 1e-3
+#: The relaxed products' tolerance is ``RELAX_SCALE * eps * ||r_0|| / ||r_j||`` (at most ``RELAX_CAP``): the
+#: errors of a cycle's products add up in its true residual, so a scale of 1 let a cycle of ~35 steps end with
+#: a true residual 2-5 times its recurrence's, and FGMRES restarted (benchmarks/recorded/fast_solver.md,
+#: session 18).
+RELAX_SCALE = 0.1
 #: The fast solve's relative residual when no mesh sets it.
 SOLVE_RTOL = 1e-6
 #: The root-mean-square surface shift, in mesh cells, that :func:`mesh_tolerance` allows the solve's residual:
