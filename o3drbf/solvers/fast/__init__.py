@@ -90,7 +90,9 @@ p0 is solved for, not projected away).  M is two-level multiplicative:
 
 Product accuracy is relaxed as the residual falls (inexact Krylov, Bouras &
 Fraysse 2005): the product tolerance for an Arnoldi step is
-``RELAX_SCALE * eps * ||r_0|| / ||r_j||`` (at most ``RELAX_CAP``), and each restart
+``s * eps * ||r_0|| / ||r_j||`` (at most ``RELAX_CAP``; s = ``RELAX_SCALE`` from
+``RELAX_SCALE_MIN`` centres on, where cycles are long enough for the products' errors to add up,
+else 1), and each restart
 recomputes the true residual at full accuracy, so the reported residual is
 real.
 
@@ -135,11 +137,11 @@ from o3drbf.solvers.fast.neighbours import (
 )
 from o3drbf.solvers.fast.precondition import TwoLevel
 from o3drbf.solvers.fast.solver import SolveSettings, solve
-from o3drbf.solvers.fast.tolerance import DEFAULT_EPS, MESH_SHIFT, RELAX_CAP, RELAX_SCALE, SOLVE_RTOL, clip_eps, mesh_tolerance, product_tolerance
+from o3drbf.solvers.fast.tolerance import DEFAULT_EPS, MESH_SHIFT, RELAX_CAP, RELAX_SCALE, RELAX_SCALE_MIN, SOLVE_RTOL, clip_eps, mesh_tolerance, product_tolerance
 
 __all__ = ["FastSum", "TwoLevel", "solve", "spatial_order", "SolveSettings", "make_evaluator", "fast_memory", "default_workers", "DEFAULT_EPS",
            "GridSum", "fast_operator", "grid_bytes", "outside_centres", "GRID_BUDGET", "product_tolerance", "check_memory",
            "grid_budget", "memory_plan", "grid_plan", "split_design", "fitting_fraction", "product_neighbours",
-           "DIRECT_PAIRS", "HAVE_GRID", "NNZ_BYTES", "PRODUCT_NEIGHBOURS_MAX", "RELAX_CAP", "RELAX_SCALE", "SPARSE_BUDGET",
+           "DIRECT_PAIRS", "HAVE_GRID", "NNZ_BYTES", "PRODUCT_NEIGHBOURS_MAX", "RELAX_CAP", "RELAX_SCALE", "RELAX_SCALE_MIN", "SPARSE_BUDGET",
            "clip_eps", "default_neighbours", "fgmres", "long_part", "near_table", "neighbour_radius", "mesh_tolerance",
            "MESH_SHIFT", "SOLVE_RTOL"]

@@ -17,7 +17,7 @@ from o3drbf.solvers.fast.fmm import FastSum
 from o3drbf.solvers.fast.grid import fast_operator
 from o3drbf.solvers.fast.memory import check_memory
 from o3drbf.solvers.fast.precondition import TwoLevel
-from o3drbf.solvers.fast.tolerance import RELAX_CAP, RELAX_SCALE, clip_eps, product_tolerance
+from o3drbf.solvers.fast.tolerance import RELAX_CAP, clip_eps, product_tolerance, relax_scale
 
 __all__ = ["solve", "SolveSettings"]
 
@@ -132,9 +132,11 @@ def solve(kernel: Kernel, centres, y, lam, settings: SolveSettings | None = None
         p = np.linalg.solve(s, q.T @ mr - t)
         return np.concatenate([mr - mq @ p, p])
 
+    scale = relax_scale(n)
+
     def product(v, rel):
         w, p = v[:n], v[n:]
-        e = max(eps, min(RELAX_CAP, RELAX_SCALE * eps * rel)) if relax else eps
+        e = max(eps, min(RELAX_CAP, scale * eps * rel)) if relax else eps
         top = fast.matvec(w, eps=e) + lam * w + q @ p
         return np.concatenate([top, q.T @ w])
 

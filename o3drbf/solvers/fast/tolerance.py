@@ -7,23 +7,31 @@ import math
 
 import numpy as np
 
-__all__ = ["DEFAULT_EPS", "RELAX_CAP", "RELAX_SCALE", "MESH_SHIFT", "SOLVE_RTOL", "clip_eps", "product_tolerance", "mesh_tolerance"]
+__all__ = ["DEFAULT_EPS", "RELAX_CAP", "RELAX_SCALE", "RELAX_SCALE_MIN", "relax_scale", "MESH_SHIFT", "SOLVE_RTOL", "clip_eps", "product_tolerance", "mesh_tolerance"]
 
 #: Default relative tolerance of fast sums (evaluation).
 DEFAULT_EPS = 1e-6
 #: Loosest product tolerance the relaxation may reach.
 RELAX_CAP = 1e-3
-#: The relaxed products' tolerance is ``RELAX_SCALE * eps * ||r_0|| / ||r_j||`` (at most ``RELAX_CAP``): the
-#: errors of a cycle's products add up in its true residual, so a scale of 1 let a cycle of ~35 steps end with
-#: a true residual 2-5 times its recurrence's, and FGMRES restarted (benchmarks/recorded/fast_solver.md,
-#: session 18).
+#: The relaxed products' tolerance is ``RELAX_SCALE * eps * ||r_0|| / ||r_j||`` (at most ``RELAX_CAP``) from
+#: ``RELAX_SCALE_MIN`` centres on, ``eps * ||r_0|| / ||r_j||`` below: the errors of a cycle's products add up in
+#: its true residual, and cycles grow with N, so with a scale of 1 a 333k system's cycles of ~35 steps ended
+#: with true residuals 2-5 times their recurrence's and FGMRES restarted (65 iterations instead of 35); at
+#: 20,000 centres the gap cost one restart; on the 10k scan there is none, and the tighter products only cost
+#: time (benchmarks/recorded/fast_solver.md, session 18).
 RELAX_SCALE = 0.1
+RELAX_SCALE_MIN = 15_000
 #: The fast solve's relative residual when no mesh sets it.
 SOLVE_RTOL = 1e-6
 #: The root-mean-square surface shift, in mesh cells, that :func:`mesh_tolerance` allows the solve's residual:
 #: small enough that the robustness study's cells on the fast solver keep their Chamfer distance
 #: (benchmarks/recorded/fast_solver.md, "The solve's tolerance").
 MESH_SHIFT = 5e-4
+
+
+def relax_scale(n: int) -> float:
+    """The relaxation's scale for a solve of ``n`` centres: ``RELAX_SCALE`` from ``RELAX_SCALE_MIN`` on, else 1."""
+    return RELAX_SCALE if n >= RELAX_SCALE_MIN else 1.0
 
 
 def clip_eps(eps: float) -> float:
