@@ -182,9 +182,9 @@ class TwoLevel:
     nested : int
         FGMRES steps for an uncapped coarse level (0, the default: capped
         instead).  The steps are preconditioned by a TwoLevel on the coarse
-        centres (same parameters, so recursive).  At 333,000 centres 8
-        nested steps on 41,600 took as many iterations as a 12,000-centre
-        Cholesky, each twice as long.
+        centres (same parameters, so recursive); off by default, since
+        the capped Cholesky level took about as many iterations, each
+        cheaper (benchmarks/recorded/fast_solver.md, session 18).
     nested_eps : float
         Tolerance of the products on the coarse centres (nested level).
     nested_rtol : float

@@ -15,10 +15,9 @@ DEFAULT_EPS = 1e-6
 RELAX_CAP = 1e-3
 #: The relaxed products' tolerance is ``RELAX_SCALE * eps * ||r_0|| / ||r_j||`` (at most ``RELAX_CAP``) from
 #: ``RELAX_SCALE_MIN`` centres on, ``eps * ||r_0|| / ||r_j||`` below: the errors of a cycle's products add up in
-#: its true residual, and cycles grow with N, so with a scale of 1 a 333k system's cycles of ~35 steps ended
-#: with true residuals 2-5 times their recurrence's and FGMRES restarted (65 iterations instead of 35); at
-#: 20,000 centres the gap cost one restart; on the 10k scan there is none, and the tighter products only cost
-#: time (benchmarks/recorded/fast_solver.md, session 18).
+#: its true residual, and cycles grow with N; at scale 1 the long cycles of large systems ended with a true
+#: residual several times their recurrence's and FGMRES restarted, while short ones showed no gap and the
+#: tighter products only cost time (benchmarks/recorded/fast_solver.md, session 18).
 RELAX_SCALE = 0.1
 RELAX_SCALE_MIN = 15_000
 #: The fast solve's relative residual when no mesh sets it.
