@@ -388,8 +388,7 @@ class Refitter:
                               kernel=self.kernel, centres=self.centres, evaluation=False)
             self.start["order"] = fast.spatial_order(self.centres)  # the solves' order, once for every refit
             self.operator = fast.fast_operator(self.kernel, self.centres[self.start["order"]],
-                                               eps=fast.product_tolerance(o.get("rtol") or 1e-6),
-                                               backend=o.get("backend", "auto"), memory_limit=o.get("memory_limit"))
+                                               eps=fast.product_tolerance(rtol), backend=o.get("backend", "auto"), memory_limit=o.get("memory_limit"))
         finite = lam[keep]
         big = DROPPED_SMOOTHING * max(float(finite.max()) if finite.size else 1.0, 1e-12)
         sol = solve_fast(self.kernel, self.centres, self.values, np.where(keep, lam, big), o.get("rtol"), o.get("max_iterations", 1000),

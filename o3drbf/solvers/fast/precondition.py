@@ -12,6 +12,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 
 from o3drbf.rbf.sums import kernel_matrix
+from o3drbf.solvers.dense import DENSE_MAX
 from o3drbf.solvers.fast.fgmres import fgmres
 from o3drbf.solvers.fast.fmm import FastSum
 from o3drbf.solvers.fast.grid import GridSum, fast_operator
@@ -200,8 +201,6 @@ class TwoLevel:
         if unknown:
             raise ValueError(f"unknown preconditioner setting(s) {', '.join(unknown)}; valid: {', '.join(f.name for f in fields(TwoLevelSettings))}")
         st = replace(settings or TwoLevelSettings(), **overrides)
-        from o3drbf.solvers.dense import DENSE_MAX
-
         if st.max_coarse > DENSE_MAX:
             raise ValueError(f"max_coarse {st.max_coarse} is above {DENSE_MAX}: the installed OpenBLAS crashes in larger Cholesky "
                              "factorizations; use nested steps for a larger coarse level")
