@@ -47,8 +47,11 @@ def kernel_matrix(
     if lower and y is not None:
         raise ValueError("lower=True is for the symmetric matrix of x with itself; omit y")
     y = x if y is None else np.asarray(y, dtype=float)
-    if compiled and order == "F" and _direct.supports(kernel):
-        return _direct.direct_matrix(kernel, x, y, lower=lower)
+    if compiled and _direct.supports(kernel):
+        if order == "F":
+            return _direct.direct_matrix(kernel, x, y, lower=lower)
+        if not lower:  # phi(|x_i - y_j|) is symmetric in the pair: the Fortran (y, x) matrix's transpose
+            return _direct.direct_matrix(kernel, y, x).T
     r = cdist(x, y)
     out = kernel(r)
     return np.asfortranarray(out) if order == "F" else np.ascontiguousarray(out)

@@ -169,3 +169,18 @@ def test_tabulated_kernel_matches_the_exact_one(delta, tau, rng):
     v1, g1 = kernel_sum(k, c, w, x, gradient=True, table=table)
     assert np.max(np.abs(v1 - v0)) < 1e-8 * np.max(np.abs(v0))
     assert np.max(np.abs(g1 - g0)) < 1e-5 * np.max(np.abs(g0))
+
+
+@pytest.mark.parametrize("order", ["F", "C"])
+@pytest.mark.parametrize("kernel", [MultiOrder(10, 0.01), Gaussian(0.2), ThinPlate()])
+def test_compiled_kernel_matrix_is_the_numpy_one_in_either_order(kernel, order, rng):
+    from o3drbf.rbf.sums import kernel_matrix
+
+    x = rng.uniform(-1, 1, (70, 3))
+    y = rng.uniform(-1, 1, (40, 3))
+    y[0] = x[0]  # r = 0, and r tiny (the series branch)
+    y[1] = x[1] + 1e-7
+    ref = kernel_matrix(kernel, x, y, compiled=False)
+    got = kernel_matrix(kernel, x, y, order=order)
+    assert got.shape == (70, 40) and got.flags[order + "_CONTIGUOUS"]
+    np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-13 * np.abs(ref).max())
