@@ -1,6 +1,9 @@
-"""Compile o3drbf's Numba kernels once, into their on-disk cache, so a user's first run does not pay for it.
+"""Compile o3drbf's Numba kernels once, into their on-disk cache, and its modules into bytecode, so a user's
+first run does not pay for it.
 
-Run by ``scripts/setup.sh`` after installing (and again whenever a source file changed):
+The bytecode is what a wheel's installation writes; an editable install (``make``'s) leaves it to the
+first import, which cannot write it where ``PYTHONDONTWRITEBYTECODE`` is set, so every run would compile
+o3drbf's sources again.  Run by ``scripts/setup.sh`` after installing (and again whenever a source file changed):
 small reconstructions on the command line's path (with its closing summary): points with normals (with the dense
 solver, then the fast one, which larger clouds get) and a range scan with cameras, written into a temporary folder
 and thrown away.  ``benchmarks/user_path.py`` runs it too before timing anything.
@@ -18,8 +21,23 @@ import time
 from pathlib import Path
 
 
+def compile_bytecode() -> bool:
+    """Byte-compile the o3drbf package (and its viewers) in place; True when every module compiled."""
+    import compileall
+
+    root = Path(__file__).resolve().parent.parent
+    ok = True
+    for folder in ("o3drbf", "viewers"):
+        if (root / folder).is_dir():
+            ok &= bool(compileall.compile_dir(root / folder, quiet=1))
+    return ok
+
+
 def main() -> int:
     t0 = time.perf_counter()
+    if not compile_bytecode():
+        print("warm-up: some o3drbf modules did not byte-compile (see above)", file=sys.stderr)
+        return 1
     from o3drbf.cli import main as cli
     from o3drbf.io.files import write_points
     from o3drbf.synthetic.scans import range_scans, write_scan_json

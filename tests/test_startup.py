@@ -99,6 +99,19 @@ def test_set_up_warm_up_leaves_nothing_to_compile_on_a_first_run(tmp_path):
     assert run.returncode == 0, run.stderr[-2000:]
     compiled = run.stderr.rsplit("COMPILED", 1)[1].split()
     assert compiled == [], f"compiled on the first run after set-up: {compiled}"
+    # Nor does Python compile o3drbf's sources (which it cannot cache itself where PYTHONDONTWRITEBYTECODE is set):
+    # every module has bytecode stamped with its source's current modification time and size.
+    import importlib.util
+
+    stale = []
+    for source in [*(root / "o3drbf").rglob("*.py"), *(root / "viewers").rglob("*.py")]:
+        cached = Path(importlib.util.cache_from_source(str(source)))
+        head = cached.read_bytes()[:16] if cached.exists() else b""
+        stat = source.stat()
+        if len(head) < 16 or int.from_bytes(head[8:12], "little") != int(stat.st_mtime) & 0xFFFFFFFF \
+                or int.from_bytes(head[12:16], "little") != stat.st_size & 0xFFFFFFFF:
+            stale.append(str(source.relative_to(root)))
+    assert stale == [], f"no current bytecode after set-up: {stale[:5]} ({len(stale)} modules)"
 
 
 def test_import_o3drbf_is_light_and_every_public_name_resolves():
