@@ -11,6 +11,7 @@ iterations, the set-up and solve seconds, the residual history and the near fiel
 default path), e.g. ``--set o3drbf.solvers.fast.neighbours:NEAR_STORE_BYTES=0``.
 
     python benchmarks/fast_system.py dump torus900k.ply --surface-count 300000 sys300k.npz
+    python benchmarks/fast_system.py dump torus1M.ply --all-points sys1m.npz
     python benchmarks/fast_system.py solve sys300k.npz [--iterations 200] [--input-order] [--preconditioner JSON] [--json runs.jsonl]
 """
 
@@ -37,7 +38,7 @@ def dump(path: str, count: str | None, out: str) -> None:
     from o3drbf.solvers.fast.tolerance import mesh_tolerance
 
     points, normals, colors = read_points(path)
-    opts = Options.create(None, **({} if count is None else {"surface_count": int(count)})).validate()
+    opts = Options.create(None, **({} if count is None else {"surface_count": None if count == "all" else int(count)})).validate()
     data, _ = remove_outliers(PointSet.create(points, normals, colors=colors), opts.outliers, seed=0)
     cset = build_constraints(data, opts.constraints, seed=0)
     params = choose_parameters(data, cset, opts.parameters, seed=0)
@@ -93,6 +94,7 @@ def main(argv=None) -> int:
     d.add_argument("points")
     d.add_argument("out")
     d.add_argument("--surface-count", default=None)
+    d.add_argument("--all-points", dest="surface_count", action="store_const", const="all", help="every point a surface constraint")
     s = sub.add_parser("solve", help="solve a dumped system")
     s.add_argument("system")
     s.add_argument("--iterations", type=int, default=200)

@@ -337,6 +337,31 @@ def test_grid_looser_products_and_subset(problem3k, dense3k):
     assert np.linalg.norm(apply(z, 1e-2) - ref) / np.linalg.norm(ref) < 1e-3
 
 
+def test_sums_at_fixed_targets_and_a_small_subsets_own_grid(problem3k, dense3k):
+    """``GridSum.at``: the sum at fixed targets, inside the grid and far beyond it (summed directly), is the
+    direct sum's to the tolerance.  The coarse-to-fine update from a tenth of the centres sums them on a grid of
+    their own, coarser than the centres' companion at the same tolerance, and matches the dense product."""
+    kernel = KERNELS["multiorder-10"]
+    c = problem3k[0]
+    g = fast.GridSum(kernel, c, eps=1e-6)
+    w = np.random.default_rng(31).normal(size=len(c))
+    t = np.vstack([np.random.default_rng(32).uniform(-1, 1, (500, 3)), [[5.0, 5.0, 5.0], [-6.0, 0.0, 2.0]]])
+    ref = kernel_sum(kernel, c, w, t)
+    at = g.at(t)
+    got = at(w)
+    assert np.linalg.norm(got - ref) / np.linalg.norm(ref) < 1e-6
+    np.testing.assert_allclose(got[-2:], ref[-2:], rtol=1e-12)  # the far ones: the direct sum
+    np.testing.assert_array_equal(at(w), got)
+    subset = np.random.default_rng(33).choice(len(c), len(c) // 10, replace=False)
+    z = np.random.default_rng(34).normal(size=len(subset))
+    dense = dense3k("multiorder-10")[:, subset] @ z
+    apply = g.from_subset(subset)
+    for e, tol in ((1e-2, 1e-3), (None, 1e-6)):
+        assert np.linalg.norm(apply(z, e) - dense) / np.linalg.norm(dense) < tol
+    own = apply.sums[1e-3].operator
+    assert own.n == len(subset) and all(a < b for a, b in zip(own.mesh.shape, g._tier(1e-3).mesh.shape))
+
+
 @pytest.mark.parametrize("eps", [1e-3, 1e-7])
 def test_near_field_summed_on_the_fly_matches_the_stored_matrix_and_dense(problem3k, dense3k, eps):
     """A grid sum whose near field is summed on the fly (no stored matrix, as at a million

@@ -191,6 +191,11 @@ def near_entries(centres, tree: cKDTree, cut: float, n_core: int) -> float:
 
 #: Kernel evaluations per product allowed for the far centres a grid leaves out (summed directly).
 DIRECT_PAIRS = 50_000_000
+#: :meth:`GridSum.from_subset` gives a subset of at most this share of the centres (a preconditioner's coarse
+#: level) a grid sum of its own, with ``SUBSET_NEIGHBOURS`` in its near field: a far coarser grid than that of
+#: all the centres, whose FFTs would cost as much for the few sources as for all of them.
+SUBSET_SHARE = 0.25
+SUBSET_NEIGHBOURS = 32
 
 
 def grid_bytes(lo, hi, h: float, half: int) -> int:
@@ -490,7 +495,9 @@ class GridSum:
     def tier_radius(self, tol: float) -> float:
         """Near-field radius of the companion at tolerance ``tol``: that of ~300 neighbours, or more where
         that would make its grid finer than this one's (a looser companion never takes more FFT memory)."""
-        rc = neighbour_radius(self.centres, self.tree, min(300, max(self.n // 300, 64)))
+        rc = self.__dict__.get("_tier_rc")
+        if rc is None:  # the same for every companion: found once
+            rc = self._tier_rc = neighbour_radius(self.centres, self.tree, min(300, max(self.n // 300, 64)))
         return max(rc, self.h / split_design(1.0, clip_eps(tol) / 10)[2])
 
     def matvec(self, w, eps: float | None = None) -> np.ndarray:
@@ -605,6 +612,39 @@ class GridSum:
     def _box(self):
         return self._cc.min(axis=0), self._cc.max(axis=0)
 
+    def at(self, targets):
+        """``w -> sum_j w_j phi(|x - c_j|)`` at fixed ``targets`` ((M, 3)): :meth:`evaluate` with the
+        targets' grid order, and the few beyond the grid (summed directly), found once."""
+        t = np.ascontiguousarray(np.asarray(targets, dtype=float).reshape(-1, 3))
+        mesh = self.mesh if self._eval_mesh is None else self._eval_mesh
+        far = np.nonzero(~mesh.inside(t))[0]
+        if len(far) * self.n > DIRECT_PAIRS:
+            if not self.cover(t.min(axis=0), t.max(axis=0)):
+                raise MemoryError(f"a grid over {len(t):,} targets exceeds the budget of {self.budget / 2**30:.1f} GB")
+            mesh, far = self.mesh, far[:0]
+        rows = np.nonzero(mesh.inside(t))[0] if len(far) else np.arange(len(t))
+        key = np.floor((t[rows] - mesh.origin) / (4 * mesh.h)).astype(np.int64)
+        rows = rows[np.lexsort((key[:, 2], key[:, 1], key[:, 0]))]  # grid order: stencil reads stay in cache
+        ts = np.ascontiguousarray(t[rows])
+
+        def apply(w):
+            w = np.asarray(w, dtype=float)
+            wc = w if self._core is None else w[self._core]
+            u = mesh.potential(self._sorted, np.ascontiguousarray(wc[self._perm]))
+            vals = mesh.gather(u, ts, False)
+            del u
+            self.cells.add_sum(ts, wc, self.tab, self.dtab, self.dr, vals, None)
+            if self._core is not None:
+                vals += kernel_sum(self.kernel, self.centres[self.outside], w[self.outside], ts)
+            out = np.empty(len(t))
+            out[rows] = vals
+            if len(far):
+                out[far] = kernel_sum(self.kernel, self.centres, w, t[far])
+            return out
+
+        apply.operator = self
+        return apply
+
     def _evaluate_on(self, mesh, w, t, gradient):
         """The grid + near sum from the core centres at targets inside ``mesh``, plus the far centres directly."""
         cached = getattr(self, "_ucache", None)
@@ -637,9 +677,33 @@ class GridSum:
             return v_out, g_out
         return v_out
 
+    def _tolerance_for(self, eps) -> float:
+        """The tolerance :meth:`_tier` serves ``eps`` at: 1e-3 or 1e-4 where a companion would, else this one's."""
+        for tol in (1e-3, 1e-4):
+            if eps is not None and tol <= eps and tol >= 10 * self.eps:
+                return tol
+        return self.eps
+
     def from_subset(self, subset):
-        """A callable ``(w_sub, eps) -> sum_{j in subset} w_j phi(|c_i - c_j|)`` at every centre."""
+        """A callable ``(w_sub, eps) -> sum_{j in subset} w_j phi(|c_i - c_j|)`` at every centre.
+
+        A subset of at most ``SUBSET_SHARE`` of the centres (a preconditioner's
+        coarse level) is summed by a grid sum of its own, built once for each
+        tolerance asked (:meth:`at` every centre); a larger one on this grid."""
         subset = np.asarray(subset)
+        if 64 <= len(subset) <= SUBSET_SHARE * self.n:
+            own = {}
+
+            def apply_own(w, eps=None):
+                tol = self._tolerance_for(eps)
+                if tol not in own:  # (a full-accuracy request: a tenth of it, since the targets are not the sources)
+                    sub = GridSum(self.kernel, self.centres[subset], eps=tol if tol > self.eps else clip_eps(tol / 10),
+                                  neighbours=SUBSET_NEIGHBOURS, budget=self._fixed_budget, store=False)
+                    own[tol] = sub.at(self.centres)
+                return own[tol](w)
+
+            apply_own.sums = own  # tolerance -> the subset's sum at every centre (its ``operator``: the grid sum)
+            return apply_own
         if self._core is None:
             csub, cmask, osub = subset, None, subset[:0]
         else:

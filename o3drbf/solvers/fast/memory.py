@@ -9,7 +9,7 @@ from scipy.spatial import cKDTree
 
 from o3drbf.rbf.kernels import MultiOrder
 from o3drbf.solvers.base import MemoryRefusal, memory_limit_or_default
-from o3drbf.solvers.fast.grid import Mesh, near_entries, near_table, outside_centres, split_design
+from o3drbf.solvers.fast.grid import SUBSET_NEIGHBOURS, SUBSET_SHARE, Mesh, near_entries, near_table, outside_centres, split_design
 from o3drbf.solvers.fast.neighbours import (HAVE_GRID, NNZ_BYTES, default_neighbours, neighbour_radius, product_neighbours,
                                             store_near)
 from o3drbf.solvers.fast.tolerance import DEFAULT_EPS, clip_eps, product_tolerance
@@ -126,8 +126,14 @@ def _twolevel_plan(kernel, centres, tree, lam_count, coarse_update_nnz, options=
     n = len(centres)
     total = NNZ_BYTES * n * (st.neighbours + 1) + 64 * n  # the tapered near matrix (built in place by a cell list)
     mc, nested = coarse_size(n, st)
-    if mc < n:
-        total += 8 * n * mc if 8 * n * mc <= st.dense_budget else int(coarse_update_nnz * mc / n) * NNZ_BYTES
+    if mc < n and 8 * n * mc <= st.dense_budget:
+        total += 8 * n * mc
+    elif 64 <= mc <= SUBSET_SHARE * n:  # the coarse centres' own grid sum, at every centre (GridSum.from_subset)
+        sub = centres[np.sort(np.random.default_rng(2).choice(n, mc, replace=False))]
+        g = grid_plan(kernel, sub, cKDTree(sub), 1e-3, neighbours=SUBSET_NEIGHBOURS, near=False)
+        total += g["grid"] + g["work"] + 32 * n  # (and the centres in its grid order)
+    elif mc < n:
+        total += int(coarse_update_nnz * mc / n) * NNZ_BYTES
     if not nested:
         return int(total + 1.5 * 8 * mc * mc)
     sub_idx = np.sort(np.random.default_rng(2).choice(n, mc, replace=False))
