@@ -19,6 +19,7 @@ from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from o3drbf.prep.sampling import spatial_order
 from o3drbf.validation import as_points, check_number
 
 __all__ = ["OutlierReport", "largest_components", "voxel_components", "statistical_outliers", "isolated_points"]
@@ -221,6 +222,42 @@ def statistical_outliers(points, nb_neighbors: int = 20, std_ratio: float = 2.0)
     return kept, report
 
 
+def _small_components(pts, tree, radius: float, min_component: int, near=None, rows=None) -> np.ndarray:
+    """Mask of the points in connected components (neighbours within ``radius``) of fewer than ``min_component``.
+
+    A point with ``min_component - 1`` others within the radius is in a component at least that large, and
+    so is every point connected to it.  Only the rest (candidates: the k nearest ``near``, when they reach that
+    far, show who they are) can be in a small component, and only through other candidates: the graph is
+    built on them alone, every point outside them merged into one node that marks a large component.
+    Row r of ``near`` is point ``rows[r]`` (default: point r)."""
+    n = len(pts)
+    m = min_component - 1
+    if near is None or near[0].shape[1] <= m:
+        pairs = tree.query_pairs(radius, output_type="ndarray")
+        graph = sparse.coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+        _, labels = connected_components(graph, directed=False)
+        return np.bincount(labels)[labels] < min_component
+    cand = np.flatnonzero(near[0][:, m] > radius)  # (column 0: the point itself)
+    if rows is not None:
+        cand = np.sort(rows[cand])
+    out = np.zeros(n, dtype=bool)
+    if len(cand) == 0:
+        return out
+    slot = np.full(n, len(cand), dtype=np.int64)  # every point that is not a candidate: node len(cand)
+    slot[cand] = np.arange(len(cand))
+    lists = tree.query_ball_point(pts[cand], radius, workers=-1)
+    rows = np.repeat(np.arange(len(cand)), [len(a) for a in lists])
+    cols = slot[np.concatenate(lists).astype(np.int64)] if len(rows) else rows
+    graph = sparse.coo_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(len(cand) + 1, len(cand) + 1))
+    _, labels = connected_components(graph, directed=False)
+    size = np.bincount(labels)
+    small = (size[labels[:-1]] < min_component) & (labels[:-1] != labels[-1])
+    out[cand[small]] = True
+    return out
+
+
+#: Clouds of at least this many points are queried in spatial order by isolated_points.
+SPATIAL_QUERIES = 20_000
 #: isolated_points defaults (tuned on stacked tori, cubes and range scans;
 #: docs/data/design-measurements.md, "Outliers").  The component radius must be well above the
 #: percolation radius of random surface samples: a few median spacings still
@@ -287,8 +324,11 @@ def isolated_points(
     off_spacings = check_number("off_spacings", off_spacings, low=0.0)
     tree = cKDTree(pts)
     kk = min(k, n - 1)
-    # the plane's neighbours, queried first: their nearest is the spacing's (the same distances as k=2)
-    near = tree.query(pts, k=kk + 1, workers=-1) if kk >= 3 else None
+    # The plane's neighbours, queried first: their nearest is the spacing's (the same distances as k=2).
+    # Row r of the answers is point rows[r]: the queries go in spatial order (twice as fast on large clouds).
+    rows = spatial_order(pts) if n >= SPATIAL_QUERIES else np.arange(n)
+    q = pts[rows]
+    near = tree.query(q, k=kk + 1, workers=-1) if kk >= 3 else None
     if spacing is None:
         d = near[0] if near is not None else tree.query(pts, k=2, workers=-1)[0]
         spacing = float(np.median(d[:, 1]))
@@ -297,19 +337,16 @@ def isolated_points(
     spacing = check_number("spacing", spacing, low=0.0, low_open=True)
     isolated = np.zeros(n, dtype=bool)
     if min_component > 1:
-        pairs = tree.query_pairs(radius_spacings * spacing, output_type="ndarray")
-        graph = sparse.coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-        _, labels = connected_components(graph, directed=False)
-        isolated |= np.bincount(labels)[labels] < min_component
+        isolated |= _small_components(pts, tree, radius_spacings * spacing, min_component, near, rows)
     if near is not None:
         idx = near[1]
         nb = np.take(pts, idx[:, 1:], axis=0)  # (N, k, 3), the point itself excluded (take: a contiguous gather)
         centroid = nb.mean(axis=1)
-        q = nb - centroid[:, None, :]
-        cov = np.matmul(q.transpose(0, 2, 1), q) / kk  # batched BLAS: several times faster than einsum here
+        dev = nb - centroid[:, None, :]
+        cov = np.matmul(dev.transpose(0, 2, 1), dev) / kk  # batched BLAS: several times faster than einsum here
         _, vecs = np.linalg.eigh(cov)
         normal = vecs[:, :, 0]
-        rms = np.sqrt((np.matmul(q, normal[:, :, None])[..., 0] ** 2).mean(axis=1))
-        offset = np.abs(np.einsum("ni,ni->n", pts - centroid, normal))
-        isolated |= (offset > off_surface * rms) & (offset > off_spacings * spacing)
+        rms = np.sqrt((np.matmul(dev, normal[:, :, None])[..., 0] ** 2).mean(axis=1))
+        offset = np.abs(np.einsum("ni,ni->n", q - centroid, normal))
+        isolated[rows] |= (offset > off_surface * rms) & (offset > off_spacings * spacing)
     return isolated

@@ -119,3 +119,25 @@ def test_isolated_points_match_the_first_written_rule(noise):
     reference = _isolated_reference(pts)
     np.testing.assert_array_equal(got, reference)
     assert 0 < reference.sum() < len(pts)
+
+
+def test_small_components_at_the_size_limit_and_chains_to_the_surface():
+    """Tight clusters of 8 to 11 points far off (the limit is 10), a sparse chain of points leading off
+    the surface (each within the component radius of the next, with too few neighbours to tell alone)
+    and the same chain detached: the component rule is the full graph's, cluster by cluster."""
+    big, _ = Sphere(1.0).sample(5000, seed=4)
+    from scipy.spatial import cKDTree
+
+    spacing = float(np.median(cKDTree(big).query(big, k=2)[0][:, 1]))
+    r = 5.0 * spacing
+    rng = np.random.default_rng(5)
+    clusters = [np.array([3.0 + size, 0.0, 0.0]) + rng.normal(scale=0.2 * r, size=(size, 3)) for size in (8, 9, 10, 11)]
+    steps = np.arange(1, 7)[:, None] * np.array([0.8 * r, 0.0, 0.0])
+    attached = np.array([1.0, 0.0, 0.0]) + steps
+    detached = np.array([1.0 + 3 * r, 0.0, 0.0]) + steps + np.array([0.0, 0.0, 0.5])
+    pts = np.vstack([big, *clusters, attached, detached])
+    got = isolated_points(pts, off_surface=1e9)
+    np.testing.assert_array_equal(got, _isolated_reference(pts, off_surface=1e9))
+    sizes = np.cumsum([5000, 8, 9, 10, 11, 6, 6])
+    assert got[sizes[0]:sizes[2]].all() and not got[sizes[2]:sizes[4]].any()
+    assert not got[:sizes[0]].any() and not got[sizes[4]:sizes[5]].any() and got[sizes[5]:].all()

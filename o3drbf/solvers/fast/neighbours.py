@@ -8,6 +8,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from o3drbf.prep.sampling import spatial_order  # (the solvers' order of the centres; defined with the points)
 from o3drbf.solvers.base import memory_limit_or_default
 
 __all__ = ["HAVE_GRID", "NNZ_BYTES", "PRODUCT_NEIGHBOURS_MAX", "NEAR_STORE_BYTES", "store_near", "pairs_chunks", "mean_neighbours", "sparse_matrix",
@@ -433,43 +434,3 @@ def neighbour_radius(centres, tree: cKDTree, k: int) -> float:
     return max(float(np.median(d[:, 0])), 1e-6 * max(float(np.ptp(centres, axis=0).max()), 1e-300))
 
 
-def spatial_order(points, bits: int = 10) -> np.ndarray:
-    """The points' indices along a Z-order (Morton) curve over their bounding box, ``bits`` levels a side.
-
-    Nearby points get nearby indices, so a sparse near-field matrix over points in this order
-    reads its vector from a small window of memory (the local step's and the products' sparse
-    parts run about twice as fast as over points in scan or sampling order).  Ties keep their
-    input order (a stable sort): the same points give the same order.
-
-    Parameters
-    ----------
-    points : (N, 3) array_like
-    bits : int
-        Levels of the curve (1..21): cells of ``1 / 2**bits`` of the box's longest side.
-
-    Returns
-    -------
-    (N,) int64 array
-        A permutation of ``range(N)``.
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> from o3drbf.solvers.fast.neighbours import spatial_order
-    >>> spatial_order(np.array([[1.0, 1, 1], [0, 0, 0], [1, 0, 0], [0, 0, 0.1]]), bits=1).tolist()
-    [1, 3, 2, 0]
-    """
-    x = np.asarray(points, dtype=float).reshape(-1, 3)
-    if not 1 <= int(bits) <= 21:
-        raise ValueError(f"bits must be in 1..21, got {bits}")
-    if len(x) == 0:
-        return np.zeros(0, np.int64)
-    lo = x.min(axis=0)
-    span = max(float((x.max(axis=0) - lo).max()), 1e-300)
-    cells = 2 ** int(bits)
-    key = np.minimum((x - lo) / span * cells, cells - 1).astype(np.int64)
-    code = np.zeros(len(x), np.int64)
-    for b in range(int(bits)):
-        for axis in range(3):
-            code |= ((key[:, axis] >> b) & 1) << (3 * b + (2 - axis))
-    return np.argsort(code, kind="stable")
