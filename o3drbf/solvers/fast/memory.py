@@ -9,6 +9,7 @@ from scipy.spatial import cKDTree
 
 from o3drbf.rbf.kernels import MultiOrder
 from o3drbf.solvers.base import MemoryRefusal, memory_limit_or_default
+from o3drbf.solvers.fast.fgmres import RESTART
 from o3drbf.solvers.fast.grid import SUBSET_NEIGHBOURS, SUBSET_SHARE, Mesh, near_entries, near_table, outside_centres, split_design
 from o3drbf.solvers.fast.neighbours import (HAVE_GRID, NNZ_BYTES, default_neighbours, neighbour_radius, product_neighbours,
                                             store_near)
@@ -24,7 +25,7 @@ _PER_CENTRE_BYTES = 200
 _ON_THE_FLY_BYTES = 8 * 8
 
 
-def fast_memory(n: int, restart: int = 50, eps: float = 1e-6) -> int:
+def fast_memory(n: int, restart: int = RESTART, eps: float = 1e-6) -> int:
     """Rough peak bytes of a fast solve with ``n`` constraints, from ``n`` alone.
 
     The FMM route (fmm3dpy's working memory) or the grid route's near parts
@@ -145,7 +146,7 @@ def _twolevel_plan(kernel, centres, tree, lam_count, coarse_update_nnz, options=
     return int(total + g["grid"] + g["near"] + inner + krylov + _PER_CENTRE_BYTES * mc)  # (its work: below the outer's)
 
 
-def memory_plan(kernel, centres, rtol: float = 1e-6, eps: float | None = None, restart: int = 50, preconditioner: dict | None = None,
+def memory_plan(kernel, centres, rtol: float = 1e-6, eps: float | None = None, restart: int = RESTART, preconditioner: dict | None = None,
                 evaluation: bool = True, box=None, extraction_bytes: int = 0, limit: int | None = None) -> dict:
     """Peak bytes of a fast fit on these centres (and of evaluating and meshing it), without building anything.
 
@@ -234,7 +235,7 @@ def memory_plan(kernel, centres, rtol: float = 1e-6, eps: float | None = None, r
             "route": "grid"}
 
 
-def check_memory(n: int, restart: int = 50, eps: float = 1e-6, memory_limit: int | None = None, kernel=None, centres=None,
+def check_memory(n: int, restart: int = RESTART, eps: float = 1e-6, memory_limit: int | None = None, kernel=None, centres=None,
                  **plan) -> dict | None:
     """Refuse, before anything is built, a fast solve that would not fit in ``memory_limit`` bytes.
 

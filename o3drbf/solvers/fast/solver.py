@@ -12,7 +12,7 @@ from o3drbf.progress import progress_bar
 from o3drbf.rbf.kernels import Gaussian, Kernel, MultiOrder
 from o3drbf.rbf.sums import polynomial_basis
 from o3drbf.solvers.base import ConvergenceWarning, Solution
-from o3drbf.solvers.fast.fgmres import fgmres
+from o3drbf.solvers.fast.fgmres import RESTART, fgmres
 from o3drbf.solvers.fast.fmm import FastSum
 from o3drbf.solvers.fast.grid import fast_operator
 from o3drbf.solvers.fast.memory import check_memory
@@ -29,7 +29,7 @@ class SolveSettings:
     rtol: float = 1e-6
     max_iterations: int = 200
     eps: float | None = None
-    restart: int = 50
+    restart: int = RESTART
     memory_limit: int | None = None
     preconditioner: dict | None = None
     relax: bool = True
