@@ -10,8 +10,8 @@ import scipy.linalg as sla
 __all__ = ["fgmres", "RESTART"]
 
 #: Iterations of an FGMRES cycle before it restarts from the true residual (the fast solve's default).  A restart
-#: throws the Krylov space away: the 1.1M-centre system of the user's path stalled for some 30 iterations after
-#: one at 50 (benchmarks/recorded/fast_solver.md, session 19).  The basis is stored only as far as it is used.
+#: throws the Krylov space away, and the million-centre system of the user's path stalled after a restart at 50
+#: (benchmarks/recorded/fast_solver.md, session 19).  The basis is stored only as far as it is used.
 RESTART = 100
 
 

@@ -58,7 +58,8 @@ def solve(kernel: Kernel, centres, y, lam, settings: SolveSettings | None = None
         Tolerance of the fast products at full accuracy; default ``rtol / 10``
         (fmm3dpy delivers ~eps / 30 relative error).
     restart : int
-        FGMRES restart length.
+        FGMRES iterations before a restart from the true residual (default
+        :data:`o3drbf.solvers.fast.fgmres.RESTART`).
     memory_limit : int, optional
         Bytes; default 80% of available memory.  Checked before starting.
     preconditioner : dict, optional
