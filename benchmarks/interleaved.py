@@ -6,7 +6,8 @@ do not compare; run in turn, each pair of runs sees about the same load.  The ot
 checkout's editable install bypassed: the imported module's path is checked), run by this
 checkout's Python; its Numba cache is warmed by one untimed run first, and so is this checkout's.
 
-    python benchmarks/interleaved.py INPUT [--rev main] [--runs 3] [-- EXTRA CLI ARGS]
+    python benchmarks/interleaved.py INPUT [--rev main] [--runs 3]
+    python benchmarks/interleaved.py [--rev main] [--runs 3] -- INPUT EXTRA CLI ARGS   (e.g. --surface-count 300000)
 
 Prints a markdown table (one row per run): revision, 1-minute load at the start, wall seconds,
 CPU seconds (user + system of the process and its children), the fit / extract stage seconds of
@@ -84,7 +85,7 @@ def main() -> int:
     parser.add_argument("input")
     parser.add_argument("--rev", default="main", help="the other revision (default main)")
     parser.add_argument("--runs", type=int, default=3)
-    parser.add_argument("extra", nargs="*", help="further reconstruct arguments (after --)")
+    parser.add_argument("extra", nargs="*", help="further reconstruct arguments (with them, put -- before INPUT)")
     a = parser.parse_args()
     with tempfile.TemporaryDirectory(prefix="o3drbf-interleaved-") as tmp:
         folder = Path(tmp)
