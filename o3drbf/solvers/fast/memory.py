@@ -17,6 +17,10 @@ from o3drbf.solvers.fast.tolerance import DEFAULT_EPS, clip_eps, product_toleran
 
 __all__ = ["fast_memory", "grid_plan", "near_choice", "memory_plan", "check_memory", "fitting_fraction"]
 
+#: Iterations of a cycle whose Krylov basis the plans count: a cycle touches its basis only as far as it goes, and
+#: the solves of the user's path take fewer (a million centres took 72, where the basis beyond this is a fifth of
+#: the peak); counting the whole cycle (fgmres.RESTART) would plan memory that a fit does not take.
+KRYLOV_PLANNED = 50
 #: Bytes of FMM working memory per point (fmm3dpy at 1e-6; benchmarks/recorded/fast_solver.md).
 _FMM_BYTES_PER_POINT = 8_000
 #: Bytes per centre of the kd-tree, the sorted copies and the index arrays every product keeps.
@@ -34,7 +38,7 @@ def fast_memory(n: int, restart: int = RESTART, eps: float = 1e-6) -> int:
     centre; the estimate that knows the centres is :func:`memory_plan`."""
     fmm = _FMM_BYTES_PER_POINT * n * (1.0 if eps <= 1e-6 else 0.6) + 12 * n * 300
     grid = (NNZ_BYTES * n * 1800 if store_near(n * 1100) else _ON_THE_FLY_BYTES * n) + 4e3 * n
-    krylov = 2 * (restart + 2) * n * 8
+    krylov = 2 * (min(restart, KRYLOV_PLANNED) + 2) * n * 8
     precond = 12 * n * 65 + 64 * n + 8 * 6000**2 + 256 * 2**20 + (12 * (n // 8) * 1000 if n > 144_000 else 0)
     return int(max(fmm, grid) + krylov + precond)
 
@@ -168,6 +172,7 @@ def memory_plan(kernel, centres, rtol: float = 1e-6, eps: float | None = None, r
         :func:`product_tolerance` of it unless ``eps`` is given.
     eps : float, optional
     restart : int
+        FGMRES cycle length; its Krylov basis is counted for at most ``KRYLOV_PLANNED`` iterations.
     preconditioner : dict, optional
         Options of :class:`TwoLevel`.
     evaluation : bool
@@ -212,7 +217,7 @@ def memory_plan(kernel, centres, rtol: float = 1e-6, eps: float | None = None, r
             tier_nnz = t["near"] / NNZ_BYTES if tol == 1e-3 else tier_nnz
     parts["preconditioner"] = _twolevel_plan(kernel, centres, tree, n, tier_nnz or main["near"] / NNZ_BYTES, preconditioner,
                                              limit)
-    parts["krylov"] = int(2 * (restart + 1) * (n + 4) * 8 + 3 * n * 4 * 8)
+    parts["krylov"] = int(2 * (min(restart, KRYLOV_PLANNED) + 1) * (n + 4) * 8 + 3 * n * 4 * 8)
     products = sum(v for k, v in parts.items() if k.startswith(("grid", "near")))
     fit = base + products + parts["preconditioner"] + parts["krylov"] + max(work)
     end = mesh = 0
