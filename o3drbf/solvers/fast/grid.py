@@ -479,18 +479,16 @@ class GridSum:
         """The loosest operator at least as accurate as ``eps``: this one, or a cached
         looser companion (tolerance 1e-4 or 1e-3, :meth:`tier_radius`: a grid no finer,
         single-precision FFTs, a 9-11 point stencil instead of 13-15, a smaller near part)."""
-        if eps is None:
+        tol = self._tolerance_for(eps)
+        if tol == self.eps:
             return self
-        for tol in (1e-3, 1e-4):
-            if tol <= eps and tol >= 10 * self.eps:
-                tiers = self.__dict__.setdefault("_tiers", {})
-                if tol not in tiers:
-                    tiers[tol] = GridSum(self.kernel, self.centres, eps=tol, radius=self.tier_radius(tol),
-                                         tree=self.tree, outside=self.outside, budget=self._fixed_budget, store=self.store)
-                    tiers[tol]._outside_held = self.__dict__.setdefault("_outside_held", [])  # the same far block
-                    tiers[tol]._near_parent = self  # its near field: a part of this one's
-                return tiers[tol]
-        return self
+        tiers = self.__dict__.setdefault("_tiers", {})
+        if tol not in tiers:
+            tiers[tol] = GridSum(self.kernel, self.centres, eps=tol, radius=self.tier_radius(tol),
+                                 tree=self.tree, outside=self.outside, budget=self._fixed_budget, store=self.store)
+            tiers[tol]._outside_held = self.__dict__.setdefault("_outside_held", [])  # the same far block
+            tiers[tol]._near_parent = self  # its near field: a part of this one's
+        return tiers[tol]
 
     def tier_radius(self, tol: float) -> float:
         """Near-field radius of the companion at tolerance ``tol``: that of ~300 neighbours, or more where
@@ -678,7 +676,8 @@ class GridSum:
         return v_out
 
     def _tolerance_for(self, eps) -> float:
-        """The tolerance :meth:`_tier` serves ``eps`` at: 1e-3 or 1e-4 where a companion would, else this one's."""
+        """The tolerance a request at ``eps`` is served at: a companion's (1e-3 or 1e-4, at least ten times
+        this one's and no looser than ``eps``), else this one's."""
         for tol in (1e-3, 1e-4):
             if eps is not None and tol <= eps and tol >= 10 * self.eps:
                 return tol
