@@ -615,12 +615,13 @@ class GridSum:
         targets' grid order, and the few beyond the grid (summed directly), found once."""
         t = np.ascontiguousarray(np.asarray(targets, dtype=float).reshape(-1, 3))
         mesh = self.mesh if self._eval_mesh is None else self._eval_mesh
-        far = np.nonzero(~mesh.inside(t))[0]
+        inside = mesh.inside(t)
+        far = np.nonzero(~inside)[0]
         if len(far) * self.n > DIRECT_PAIRS:
             if not self.cover(t.min(axis=0), t.max(axis=0)):
                 raise MemoryError(f"a grid over {len(t):,} targets exceeds the budget of {self.budget / 2**30:.1f} GB")
             mesh, far = self.mesh, far[:0]
-        rows = np.nonzero(mesh.inside(t))[0] if len(far) else np.arange(len(t))
+        rows = np.nonzero(inside)[0] if len(far) else np.arange(len(t))
         key = np.floor((t[rows] - mesh.origin) / (4 * mesh.h)).astype(np.int64)
         rows = rows[np.lexsort((key[:, 2], key[:, 1], key[:, 0]))]  # grid order: stencil reads stay in cache
         ts = np.ascontiguousarray(t[rows])
