@@ -23,10 +23,11 @@ demo: $(SETUP)
 samples: $(SETUP)
 	$(PY) samples/generate.py $(OUT)/samples
 
-# The whole suite in TEST_WORKERS processes (pytest-xdist; the slowest tests, compiling and end to end, run beside the rest).
+# The whole suite in TEST_WORKERS processes (pytest-xdist; the slowest tests, compiling and end to end, run beside the rest);
+# a crash in a command the tests start prints its Python stack (PYTHONFAULTHANDLER).
 TEST_WORKERS ?= 2
 test: $(SETUP)
-	$(PY) -m pytest -q -rs -n $(TEST_WORKERS) --dist worksteal
+	PYTHONFAULTHANDLER=1 $(PY) -m pytest -q -rs -n $(TEST_WORKERS) --dist worksteal
 
 # The tests not marked slow (tests/conftest.py lists them): under a minute on 2 cores.
 test-fast: $(SETUP)

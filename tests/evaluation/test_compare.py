@@ -346,3 +346,27 @@ def test_both_poissons_get_the_clouds_normals(torus_data, monkeypatch):
     monkeypatch.setattr(C, "open3d_normals", no_estimate)
     rows = C.compare(points, normals, methods="poisson,poisson-tutorial")
     assert [r["error"] for r in rows] == [None, None]
+
+
+def test_poisson_takes_one_thread_on_a_busy_machine_and_all_otherwise(torus_data, monkeypatch):
+    """Open3D's threaded Poisson crashes at random with the cores oversubscribed (isl-org/Open3D#6828)."""
+    import open3d as o3d
+
+    from o3drbf.evaluation import peers
+    from o3drbf.solvers import base
+
+    points, normals = torus_data
+    asked = []
+    original = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson
+
+    def recording(pcd, depth=8, **kwargs):
+        asked.append(kwargs.get("n_threads", -1))
+        return original(pcd, depth=depth, **kwargs)
+
+    monkeypatch.setattr(o3d.geometry.TriangleMesh, "create_from_point_cloud_poisson", recording)
+    for busy in (True, False):
+        monkeypatch.setattr(base, "busy_machine", lambda busy=busy: busy)
+        mesh = peers.poisson(points, normals, depth=5)
+        assert len(mesh.triangles) > 0
+    peers.poisson(points, normals, depth=5, threads=2)
+    assert asked == [1, -1, 2]
