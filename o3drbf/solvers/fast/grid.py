@@ -52,17 +52,26 @@ def long_part(kernel, r, sigma, extra=0.0):
     return out.real
 
 
-@njit(cache=True, parallel=True)
+#: LLVM may reorder the stencils' sums (and fuse multiply-adds), so that they vectorize: rounding-level
+#: changes only, and each grid node still gets its points' terms in one order whatever the thread count.
+_STENCIL_MATH = {"reassoc", "contract"}
+
+
+@njit(cache=True, parallel=True, fastmath=_STENCIL_MATH)
 def _spread(pts, w, origin, h, s, half, grid):
     """Spread ``w`` onto ``grid`` with the Gaussian stencil, in parallel over slabs along x.
 
     Slabs of ``W = 2 half + 1`` nodes: a point's stencil starts in its slab and reaches at most into
     the next one, so the even slabs are spread at the same time, then the odd ones (no two threads
-    add to one node).  Each node gets its sums in the same order whatever the thread count."""
+    add to one node).  Each node gets its sums in the same order whatever the thread count.  The grid
+    is addressed flat with unsigned offsets (no negative-index wrap to test), so that a stencil row
+    is one vector operation."""
     W = 2 * half + 1
     c = 1.0 / ((2 * math.pi) ** 1.5 * s ** 3)
     inv = 1.0 / (2 * s * s)
     n = pts.shape[0]
+    ny, nz = grid.shape[1], grid.shape[2]
+    flat = grid.reshape(-1)
     nslab = grid.shape[0] // W + 1
     slab = np.empty(n, np.int64)
     count = np.zeros(nslab + 1, np.int64)
@@ -93,15 +102,20 @@ def _spread(pts, w, origin, h, s, half, grid):
                     va = wp * wx[a]
                     for b in range(W):
                         vb = va * wy[b]
+                        base = np.uint64(((ix + a) * ny + iy + b) * nz + iz)
                         for q in range(W):
-                            grid[ix + a, iy + b, iz + q] += vb * wz[q]
+                            flat[base + np.uint64(q)] += vb * wz[q]
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, fastmath=_STENCIL_MATH)
 def _gather(pts, origin, h, s, half, u, out, grad, want):
+    """The Gaussian stencil's weighted sum of ``u`` at each point into ``out`` (and, with ``want``, its
+    gradient into ``grad``); ``u`` addressed flat with unsigned offsets, as in :func:`_spread`."""
     W = 2 * half + 1
     c = 1.0 / ((2 * math.pi) ** 1.5 * s ** 3)
     inv = 1.0 / (2 * s * s)
+    ny, nz = u.shape[1], u.shape[2]
+    flat = u.reshape(-1)
     for p in prange(pts.shape[0]):
         wx = np.empty(W); wy = np.empty(W); wz = np.empty(W)
         dx = np.empty(W); dy = np.empty(W); dz = np.empty(W)
@@ -112,22 +126,29 @@ def _gather(pts, origin, h, s, half, u, out, grad, want):
             d = (fy - iy - a) * h; wy[a] = math.exp(-d * d * inv); dy[a] = -d / (s * s) * wy[a]
             d = (fz - iz - a) * h; wz[a] = math.exp(-d * d * inv); dz[a] = -d / (s * s) * wz[a]
         acc = 0.0; g0 = 0.0; g1 = 0.0; g2 = 0.0
-        for a in range(W):
-            for b in range(W):
-                row = 0.0; rowd = 0.0
-                for q in range(W):
-                    v = u[ix + a, iy + b, iz + q]
-                    row += v * wz[q]
-                    if want:
+        if want:
+            for a in range(W):
+                for b in range(W):
+                    base = np.uint64(((ix + a) * ny + iy + b) * nz + iz)
+                    row = 0.0; rowd = 0.0
+                    for q in range(W):
+                        v = flat[base + np.uint64(q)]
+                        row += v * wz[q]
                         rowd += v * dz[q]
-                acc += wx[a] * wy[b] * row
-                if want:
+                    acc += wx[a] * wy[b] * row
                     g0 += dx[a] * wy[b] * row
                     g1 += wx[a] * dy[b] * row
                     g2 += wx[a] * wy[b] * rowd
-        out[p] = c * acc
-        if want:
             grad[p, 0] = c * g0; grad[p, 1] = c * g1; grad[p, 2] = c * g2
+        else:
+            for a in range(W):
+                for b in range(W):
+                    base = np.uint64(((ix + a) * ny + iy + b) * nz + iz)
+                    row = 0.0
+                    for q in range(W):
+                        row += flat[base + np.uint64(q)] * wz[q]
+                    acc += wx[a] * wy[b] * row
+        out[p] = c * acc
 
 
 def _fft_workers() -> int:
