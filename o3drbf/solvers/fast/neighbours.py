@@ -32,19 +32,25 @@ except ImportError:  # pragma: no cover
     prange = range
 
 
-@njit(cache=True, parallel=True)
+#: The compiled near-field loops may reorder sums and fuse multiply-adds (so that they vectorize); the
+#: cell-list pass and the restriction of a larger near field share these flags, so they value a pair alike.
+NEAR_MATH = {"reassoc", "contract"}
+
+
+@njit(cache=True, parallel=True, fastmath=NEAR_MATH)
 def _csr_matvec(indptr, indices, data, x, out):
+    # Unsigned column indices (no negative-index wrap per read) and a row's sum in any order: it vectorizes.
     for i in prange(out.shape[0]):
         acc = 0.0
         for k in range(indptr[i], indptr[i + 1]):
-            acc += data[k] * x[indices[k]]
+            acc += data[k] * x[np.uint64(indices[k])]
         out[i] += acc
 
 
 def csr_matvec(a, x, out=None) -> np.ndarray:
     """``a @ x`` for a CSR matrix ``a`` and a vector ``x``, on all threads (SciPy's product is serial);
-    with ``out``, ``out += a @ x`` in place and ``out`` returned.  Each row is summed in its stored
-    order, so the result does not depend on the thread count.
+    with ``out``, ``out += a @ x`` in place and ``out`` returned.  Each row is summed by the same
+    code whichever thread takes it, so the result does not depend on the thread count.
 
     Examples
     --------
@@ -67,7 +73,7 @@ def csr_matvec(a, x, out=None) -> np.ndarray:
     return out
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, fastmath=NEAR_MATH)
 def _restrict_pass(fill, indptr, indices, pts, rc, tab, dr, counts, out_indptr, out_indices, out_data):
     rc2 = rc * rc
     nt = tab.shape[0]
@@ -170,46 +176,55 @@ def _cell_keys(pts, lo, cell, dims):
 _COUNT, _FILL, _SUM, _SUM_GRAD = 0, 1, 2, 3
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, fastmath=NEAR_MATH)
 def _near_pass(mode, tp, sp_, order, start, lo, cell, dims, rc, tab, dtab, dr, wsorted, counts, indptr, indices, data,
                out, grad):
     """The one loop over (target, source) pairs within ``rc``, by the 27 cells around each target.
 
     ``mode`` _COUNT: ``counts[p]`` = pairs of target p; _FILL: the CSR row p (``indptr``, ``indices``
     = source index, ``data`` = table value); _SUM / _SUM_GRAD: ``out[p] += sum_q w_q tab(r_pq)`` (and
-    ``grad[p] += sum_q w_q dtab(r_pq) (t_p - s_q)``).  The table is linearly interpolated at ``r / dr``."""
+    ``grad[p] += sum_q w_q dtab(r_pq) (t_p - s_q)``).  The table is linearly interpolated at ``r / dr``.
+    ``sp_`` is (3, N): the sorted points' coordinates, one row each.  The three cells along z in a
+    column of the 27 are consecutive keys, so their points are one run; points and tables are read
+    with unsigned offsets (no negative-index wrap) and the sums may be reordered, so the runs vectorize."""
     m = tp.shape[0]
     rc2 = rc * rc
     nt = tab.shape[0]
+    sx = sp_[0]; sy = sp_[1]; sz = sp_[2]
     for p in prange(m):
-        i0 = int((tp[p, 0] - lo[0]) / cell); j0 = int((tp[p, 1] - lo[1]) / cell); k0 = int((tp[p, 2] - lo[2]) / cell)
+        t0 = tp[p, 0]; t1 = tp[p, 1]; t2 = tp[p, 2]
+        i0 = int((t0 - lo[0]) / cell); j0 = int((t1 - lo[1]) / cell); k0 = int((t2 - lo[2]) / cell)
+        k_lo = max(k0 - 1, 0); k_hi = min(k0 + 2, dims[2])
         c = indptr[p] if mode == _FILL else 0
         acc = 0.0; g0 = 0.0; g1 = 0.0; g2 = 0.0
         for i in range(max(i0 - 1, 0), min(i0 + 2, dims[0])):
             for j in range(max(j0 - 1, 0), min(j0 + 2, dims[1])):
-                for k in range(max(k0 - 1, 0), min(k0 + 2, dims[2])):
-                    key = (i * dims[1] + j) * dims[2] + k
-                    for q in range(start[key], start[key + 1]):
-                        d0 = tp[p, 0] - sp_[q, 0]; d1 = tp[p, 1] - sp_[q, 1]; d2 = tp[p, 2] - sp_[q, 2]
-                        r2 = d0 * d0 + d1 * d1 + d2 * d2
-                        if r2 > rc2:
-                            continue
-                        if mode == _COUNT:
-                            c += 1
-                            continue
-                        x = math.sqrt(r2) / dr
-                        ii = min(int(x), nt - 2)
-                        f = x - ii
-                        v = tab[ii] * (1 - f) + tab[ii + 1] * f
-                        if mode == _FILL:
-                            indices[c] = order[q]
-                            data[c] = v
-                            c += 1
-                        else:
-                            acc += wsorted[q] * v
-                            if mode == _SUM_GRAD:
-                                g = wsorted[q] * (dtab[ii] * (1 - f) + dtab[ii + 1] * f)
-                                g0 += g * d0; g1 += g * d1; g2 += g * d2
+                if k_lo >= k_hi:
+                    continue
+                row = (i * dims[1] + j) * dims[2]
+                for q in range(start[row + k_lo], start[row + k_hi]):
+                    uq = np.uint64(q)
+                    d0 = t0 - sx[uq]; d1 = t1 - sy[uq]; d2 = t2 - sz[uq]
+                    r2 = d0 * d0 + d1 * d1 + d2 * d2
+                    if r2 > rc2:
+                        continue
+                    if mode == _COUNT:
+                        c += 1
+                        continue
+                    x = math.sqrt(r2) / dr
+                    ii = min(int(x), nt - 2)
+                    f = x - ii
+                    ui = np.uint64(ii)
+                    v = tab[ui] * (1 - f) + tab[ui + np.uint64(1)] * f
+                    if mode == _FILL:
+                        indices[c] = order[uq]
+                        data[c] = v
+                        c += 1
+                    else:
+                        acc += wsorted[uq] * v
+                        if mode == _SUM_GRAD:
+                            g = wsorted[uq] * (dtab[ui] * (1 - f) + dtab[ui + np.uint64(1)] * f)
+                            g0 += g * d0; g1 += g * d1; g2 += g * d2
         if mode == _COUNT:
             counts[p] = c
         elif mode != _FILL:
@@ -301,11 +316,13 @@ class CellList:
         self.order = np.argsort(key, kind="stable")
         self.start = np.searchsorted(key[self.order], np.arange(int(np.prod(self.dims)) + 1)).astype(np.int64)
         self.sorted = np.ascontiguousarray(pts[self.order])
+        self._rows = np.ascontiguousarray(self.sorted.T)  # (3, N): one coordinate a row, for the compiled loop
+        self._order32 = self.order.astype(np.int32)
 
     def _pass(self, mode, targets, tables, wsorted, counts, csr, sums):
         """One :func:`_near_pass`: ``tables`` (tab, dtab, dr), ``csr`` (indptr, indices, data), ``sums`` (out, grad)."""
         tab, dtab, dr = tables
-        _near_pass(mode, targets, self.sorted, self.order.astype(np.int32), self.start, self.lo, self.radius, self.dims,
+        _near_pass(mode, targets, self._rows, self._order32, self.start, self.lo, self.radius, self.dims,
                    self.radius, tab, dtab, dr, wsorted, counts, *csr, *sums)
 
     def matrix(self, targets, tab, dr: float) -> sp.csr_matrix:
