@@ -547,7 +547,8 @@ class GridSum:
         return out
 
     #: Bytes of the stored kernel block between the grid's centres and the far ones it leaves out
-    #: (:meth:`_outside_block`); above it, the far centres are summed directly at every product.
+    #: (:meth:`_outside_block`), and of the one between :meth:`at`'s targets and the far centres; above it,
+    #: the far centres are summed directly at every product.
     OUTSIDE_BLOCK_BYTES = 256 * 2**20
 
     def _outside_block(self):
@@ -646,6 +647,10 @@ class GridSum:
         key = np.floor((t[rows] - mesh.origin) / (4 * mesh.h)).astype(np.int64)
         rows = rows[np.lexsort((key[:, 2], key[:, 1], key[:, 0]))]  # grid order: stencil reads stay in cache
         ts = np.ascontiguousarray(t[rows])
+        o = self.outside
+        # The far centres' kernel at the targets: stored once when small (a product's cost otherwise).
+        block = kernel_matrix(self.kernel, ts, self.centres[o], order="C") \
+            if self._core is not None and len(ts) * len(o) * 8 <= self.OUTSIDE_BLOCK_BYTES else None
 
         def apply(w):
             w = np.asarray(w, dtype=float)
@@ -654,8 +659,10 @@ class GridSum:
             vals = mesh.gather(u, ts, False)
             del u
             self.cells.add_sum(ts, wc, self.tab, self.dtab, self.dr, vals, None)
-            if self._core is not None:
-                vals += kernel_sum(self.kernel, self.centres[self.outside], w[self.outside], ts)
+            if block is not None:
+                vals += block @ w[o]
+            elif self._core is not None:
+                vals += kernel_sum(self.kernel, self.centres[o], w[o], ts)
             out = np.empty(len(t))
             out[rows] = vals
             if len(far):
@@ -720,6 +727,7 @@ class GridSum:
                 if tol not in own:  # (a full-accuracy request: a tenth of it, since the targets are not the sources)
                     sub = GridSum(self.kernel, self.centres[subset], eps=tol if tol > self.eps else clip_eps(tol / 10),
                                   neighbours=SUBSET_NEIGHBOURS, budget=self._fixed_budget, store=False)
+                    sub.OUTSIDE_BLOCK_BYTES = self.OUTSIDE_BLOCK_BYTES
                     own[tol] = sub.at(self.centres)
                 return own[tol](w)
 

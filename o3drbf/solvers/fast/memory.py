@@ -10,7 +10,7 @@ from scipy.spatial import cKDTree
 from o3drbf.rbf.kernels import MultiOrder
 from o3drbf.solvers.base import MemoryRefusal, memory_limit_or_default
 from o3drbf.solvers.fast.fgmres import RESTART
-from o3drbf.solvers.fast.grid import SUBSET_NEIGHBOURS, SUBSET_SHARE, Mesh, near_entries, near_table, outside_centres, split_design
+from o3drbf.solvers.fast.grid import SUBSET_NEIGHBOURS, SUBSET_SHARE, GridSum, Mesh, near_entries, near_table, outside_centres, split_design
 from o3drbf.solvers.fast.neighbours import (HAVE_GRID, NNZ_BYTES, default_neighbours, neighbour_radius, product_neighbours,
                                             store_near)
 from o3drbf.solvers.fast.tolerance import DEFAULT_EPS, clip_eps, product_tolerance
@@ -136,7 +136,8 @@ def _twolevel_plan(kernel, centres, tree, lam_count, coarse_update_nnz, options=
     elif 64 <= mc <= SUBSET_SHARE * n:  # the coarse centres' own grid sum, at every centre (GridSum.from_subset)
         sub = centres[np.sort(np.random.default_rng(2).choice(n, mc, replace=False))]
         g = grid_plan(kernel, sub, cKDTree(sub), 1e-3, neighbours=SUBSET_NEIGHBOURS, near=False)
-        total += g["grid"] + g["work"] + 32 * n  # (and the centres in its grid order)
+        block = 8 * n * len(g["outside"])  # its far centres' kernel at every centre, one a tolerance (GridSum.at)
+        total += g["grid"] + g["work"] + 32 * n + (2 * block if block <= GridSum.OUTSIDE_BLOCK_BYTES else 0)
     elif mc < n:
         total += int(coarse_update_nnz * mc / n) * NNZ_BYTES
     if not nested:
