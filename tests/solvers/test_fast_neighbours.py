@@ -92,3 +92,29 @@ def test_spatial_order_keeps_neighbours_close_in_memory():
     with pytest.raises(ValueError, match="bits"):
         spatial_order(p, bits=0)
     assert spatial_order(np.zeros((0, 3))).size == 0 and spatial_order(np.zeros((3, 3))).tolist() == [0, 1, 2]
+
+
+def test_neighbour_radius_is_the_sampled_median_and_is_found_once_per_centres_and_k():
+    from scipy.spatial import cKDTree
+
+    from o3drbf.solvers.fast.neighbours import neighbour_radius
+
+    pts = np.random.default_rng(7).uniform(-1, 1, (3000, 3))
+
+    class Counting(cKDTree):
+        calls = 0
+
+        def query(self, *args, **kwargs):
+            Counting.calls += 1
+            return super().query(*args, **kwargs)
+
+    tree = Counting(pts)
+    sample = pts[np.random.default_rng(0).choice(len(pts), 2000, replace=False)]
+    d = np.sort(np.linalg.norm(sample[:, None, :] - pts[None, :, :], axis=2), axis=1)
+    for k in (20, 50):
+        assert neighbour_radius(pts, tree, k) == pytest.approx(np.median(d[:, k - 1]), rel=1e-12)
+    assert Counting.calls == 2
+    assert neighbour_radius(pts, tree, 20) == pytest.approx(np.median(d[:, 19]), rel=1e-12) and Counting.calls == 2
+    moved = pts + 1e-3
+    neighbour_radius(moved, Counting(moved), 20)
+    assert Counting.calls == 3  # other centres: found afresh

@@ -441,13 +441,29 @@ def store_near(entries: float, limit: int | None = None) -> bool:
     return need <= (bound if NEAR_STORE_BYTES is None else min(NEAR_STORE_BYTES, bound))
 
 
+#: Radii :func:`neighbour_radius` found, by the centres' digest and k: a fit asks the same ones several times
+#: (its memory plan, its products, the evaluator), each a k-nearest query of up to 1,000 neighbours.
+_RADII: dict = {}
+_RADII_KEPT = 64
+
+
 def neighbour_radius(centres, tree: cKDTree, k: int) -> float:
     """Median distance from a seeded sample of 2,000 centres to their ``k``-th nearest centre (self included)."""
+    import hashlib
+
+    centres = np.ascontiguousarray(centres, dtype=float)
     n = len(centres)
+    k = int(min(max(k, 8), max(n // 4, 2)))
+    key = (centres.shape, hashlib.blake2b(centres.data, digest_size=16).digest(), k)
+    if key in _RADII:
+        return _RADII[key]
     rng = np.random.default_rng(0)
     sample = centres[rng.choice(n, min(n, 2000), replace=False)]
-    k = int(min(max(k, 8), max(n // 4, 2)))
     d, _ = tree.query(sample, k=[k], workers=-1)  # the k-th only, on every core
-    return max(float(np.median(d[:, 0])), 1e-6 * max(float(np.ptp(centres, axis=0).max()), 1e-300))
+    radius = max(float(np.median(d[:, 0])), 1e-6 * max(float(np.ptp(centres, axis=0).max()), 1e-300))
+    if len(_RADII) >= _RADII_KEPT:
+        _RADII.pop(next(iter(_RADII)))
+    _RADII[key] = radius
+    return radius
 
 
