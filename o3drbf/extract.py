@@ -562,17 +562,11 @@ def _keep_off_corners(d: np.ndarray) -> np.ndarray:
     surface; changing values without changing signs keeps marching cubes'
     topology (and so a closed, manifold mesh) exactly.
     """
-    steps = []
-    for axis in range(3):
-        a = np.moveaxis(d, axis, 0)
-        lo, hi = a[:-1], a[1:]
-        cross = (lo < 0) != (hi < 0)
-        steps.append(np.abs(hi - lo)[cross])
-    steps = np.concatenate(steps)
+    from o3drbf.mesh.band import crossing_steps, nudge_off_zero
+
+    steps = crossing_steps(d)
     if steps.size == 0:
         return d
-    eps = CORNER_GAP * float(np.median(steps))
-    out = d.copy()
-    small = np.abs(out) < eps
-    out[small] = np.where(out[small] > 0, eps, -eps)
+    out = np.array(d, dtype=float, order="C")
+    nudge_off_zero(out, CORNER_GAP * float(np.median(steps)))
     return out

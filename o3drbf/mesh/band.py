@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-__all__ = ["candidate_cells", "corners_to_evaluate"]
+__all__ = ["candidate_cells", "corners_to_evaluate", "crossing_steps", "nudge_off_zero"]
 
 
 @njit(cache=True, inline="always")
@@ -140,3 +140,76 @@ def corners_to_evaluate(vals: np.ndarray, exact: np.ndarray, changed, level: flo
     ci, cj, ck = (np.ascontiguousarray(c, dtype=np.int64) for c in changed)
     flat = _corners_to_evaluate(vals, exact, ci, cj, ck, float(level), float(margin))
     return np.unravel_index(flat, vals.shape)
+
+
+@njit(cache=True, parallel=True)
+def _crossing_steps(d, counts, start, out, fill):
+    nx, ny, nz = d.shape
+    for i in prange(nx):
+        c = start[i] if fill else 0
+        for j in range(ny):
+            for k in range(nz):
+                v = d[i, j, k]
+                if i + 1 < nx and (v < 0) != (d[i + 1, j, k] < 0):
+                    if fill:
+                        out[c] = abs(d[i + 1, j, k] - v)
+                    c += 1
+                if j + 1 < ny and (v < 0) != (d[i, j + 1, k] < 0):
+                    if fill:
+                        out[c] = abs(d[i, j + 1, k] - v)
+                    c += 1
+                if k + 1 < nz and (v < 0) != (d[i, j, k + 1] < 0):
+                    if fill:
+                        out[c] = abs(d[i, j, k + 1] - v)
+                    c += 1
+        if not fill:
+            counts[i] = c
+
+
+def crossing_steps(d: np.ndarray) -> np.ndarray:
+    """``|d_b - d_a|`` along every grid edge (a, b) whose ends differ in sign (``d < 0`` against ``d >= 0``).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from o3drbf.mesh.band import crossing_steps
+    >>> d = np.zeros((2, 1, 1)); d[0] = -0.25
+    >>> crossing_steps(d)
+    array([0.25])
+    """
+    d = np.ascontiguousarray(d, dtype=float)
+    counts = np.zeros(d.shape[0], np.int64)
+    _crossing_steps(d, counts, counts, np.empty(0), False)
+    start = np.zeros(d.shape[0], np.int64)
+    np.cumsum(counts[:-1], out=start[1:])
+    out = np.empty(int(counts.sum()))
+    _crossing_steps(d, counts, start, out, True)
+    return out
+
+
+@njit(cache=True, parallel=True)
+def _nudge(d, eps):
+    nx, ny, nz = d.shape
+    for i in prange(nx):
+        for j in range(ny):
+            for k in range(nz):
+                v = d[i, j, k]
+                if abs(v) < eps:
+                    d[i, j, k] = eps if v > 0 else -eps
+
+
+def nudge_off_zero(d: np.ndarray, eps: float) -> None:
+    """Set every value of ``d`` (C-contiguous, in place) closer to 0 than ``eps`` to ``+eps`` or ``-eps``,
+    keeping its sign (0 counts as negative, as ``d < 0`` does not: it becomes ``-eps``).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from o3drbf.mesh.band import nudge_off_zero
+    >>> d = np.array([[[0.5, 1e-9, 0.0, -1e-9]]])
+    >>> nudge_off_zero(d, 0.01); d
+    array([[[ 0.5 ,  0.01, -0.01, -0.01]]])
+    """
+    if not d.flags.c_contiguous:
+        raise ValueError("d must be C-contiguous (changed in place)")
+    _nudge(d, float(eps))

@@ -63,3 +63,32 @@ def test_corners_to_evaluate_are_numpys_in_c_order(level, margin):
         assert np.array_equal(g, w)
     none = corners_to_evaluate(vals, exact, tuple(np.zeros(0, np.int64) for _ in range(3)), level, margin)
     assert all(len(c) == 0 for c in none)
+
+
+def test_values_kept_off_zero_as_the_whole_grid_numpy_form_does():
+    """The compiled crossing steps and nudge give, bit for bit, the NumPy form they replaced: the median
+    step of the sign-changing edges along all three axes, and every |d| below a hundredth of it set to
+    +-that, 0 to the negative side."""
+    from o3drbf.extract import CORNER_GAP, _keep_off_corners
+
+    def numpy_form(d):
+        steps = []
+        for axis in range(3):
+            a = np.moveaxis(d, axis, 0)
+            cross = (a[:-1] < 0) != (a[1:] < 0)
+            steps.append(np.abs(a[1:] - a[:-1])[cross])
+        eps = CORNER_GAP * float(np.median(np.concatenate(steps)))
+        out = d.copy()
+        small = np.abs(out) < eps
+        out[small] = np.where(out[small] > 0, eps, -eps)
+        return out
+
+    rng = np.random.default_rng(3)
+    x = np.linspace(-1, 1, 41)
+    d = np.sqrt(x[:, None, None] ** 2 + 0.5 * x[None, :33, None] ** 2 + x[None, None, :29] ** 2) - 0.6
+    d += rng.normal(scale=1e-3, size=d.shape)
+    d[rng.random(d.shape) < 0.01] = 0.0
+    d[rng.random(d.shape) < 0.01] *= 1e-6
+    want = numpy_form(d)
+    assert (want != d).sum() > 100  # values were moved
+    assert np.array_equal(_keep_off_corners(d), want)
