@@ -29,6 +29,7 @@ import time
 import numpy as np
 
 from o3drbf.extract import CORNER_GAP, extraction_box, grid_for, refine_on_edges
+from o3drbf.mesh.band import crossing_steps
 from o3drbf.tiles.cluster import run_tasks, tile_client, worker_summary
 from o3drbf.validation import check_number
 
@@ -338,12 +339,7 @@ def extract_tiled(surface, options=None, *, level: float = 0.0, closed: bool = T
         mn, mx = np.min(corners, axis=0), np.max(corners, axis=0)
         absmin = np.min(np.abs(corners), axis=0)
         band = ((mn <= 0) & (mx >= 0)) | (absmin <= BAND_MARGIN * (mx - mn))
-        steps = []
-        for axis in range(3):
-            a = np.moveaxis(cv, axis, 0)
-            cross = (a[:-1] < 0) != (a[1:] < 0)
-            steps.append(np.abs(a[1:] - a[:-1])[cross])
-        steps = np.concatenate(steps)
+        steps = crossing_steps(cv)
         if steps.size == 0:
             raise RuntimeError(f"No surface found at level {level}: f - level ranges over [{cv.min():.3g}, {cv.max():.3g}] on the coarse lattice")
         eps = CORNER_GAP * float(np.median(steps)) / lat["stride"]

@@ -15,7 +15,7 @@ from o3drbf.rbf.kernels import Kernel, MultiOrder
 from o3drbf.rbf.sums import kernel_matrix, kernel_sum
 from o3drbf.solvers.base import memory_limit_or_default
 from o3drbf.solvers.fast.fmm import FastSum
-from o3drbf.solvers.fast.neighbours import (HAVE_GRID, CellList, csr_matvec, default_neighbours, restrict_near, neighbour_radius, njit, prange, product_neighbours,
+from o3drbf.solvers.fast.neighbours import (HAVE_GRID, LOOP_MATH, CellList, csr_matvec, default_neighbours, restrict_near, neighbour_radius, njit, prange, product_neighbours,
                                             store_near)
 from o3drbf.solvers.fast.tolerance import DEFAULT_EPS, clip_eps
 
@@ -52,18 +52,14 @@ def long_part(kernel, r, sigma, extra=0.0):
     return out.real
 
 
-#: LLVM may reorder the stencils' sums (and fuse multiply-adds), so that they vectorize: rounding-level
-#: changes only, and each grid node still gets its points' terms in one order whatever the thread count.
-_STENCIL_MATH = {"reassoc", "contract"}
-
-
-@njit(cache=True, parallel=True, fastmath=_STENCIL_MATH)
+@njit(cache=True, parallel=True, fastmath=LOOP_MATH)
 def _spread(pts, w, origin, h, s, half, grid):
     """Spread ``w`` onto ``grid`` with the Gaussian stencil, in parallel over slabs along x.
 
     Slabs of ``W = 2 half + 1`` nodes: a point's stencil starts in its slab and reaches at most into
     the next one, so the even slabs are spread at the same time, then the odd ones (no two threads
-    add to one node).  Each node gets its sums in the same order whatever the thread count.  The grid
+    add to one node).  Each node gets its sums in the same order whatever the thread count (LOOP_MATH
+    reorders only within a point's stencil).  The grid
     is addressed flat with unsigned offsets (no negative-index wrap to test), so that a stencil row
     is one vector operation."""
     W = 2 * half + 1
@@ -107,7 +103,7 @@ def _spread(pts, w, origin, h, s, half, grid):
                             flat[base + np.uint64(q)] += vb * wz[q]
 
 
-@njit(cache=True, parallel=True, fastmath=_STENCIL_MATH)
+@njit(cache=True, parallel=True, fastmath=LOOP_MATH)
 def _gather(pts, origin, h, s, half, u, out, grad, want):
     """The Gaussian stencil's weighted sum of ``u`` at each point into ``out`` (and, with ``want``, its
     gradient into ``grad``); ``u`` addressed flat with unsigned offsets, as in :func:`_spread`."""

@@ -32,12 +32,13 @@ except ImportError:  # pragma: no cover
     prange = range
 
 
-#: The compiled near-field loops may reorder sums and fuse multiply-adds (so that they vectorize); the
-#: cell-list pass and the restriction of a larger near field share these flags, so they value a pair alike.
-NEAR_MATH = {"reassoc", "contract"}
+#: The fast sums' compiled loops (near field, CSR product, the grid's spreading and gathering) may reorder
+#: sums and fuse multiply-adds, so that they vectorize: rounding-level changes only.  The cell-list pass and
+#: the restriction of a larger near field share these flags, so they value a pair alike.
+LOOP_MATH = {"reassoc", "contract"}
 
 
-@njit(cache=True, parallel=True, fastmath=NEAR_MATH)
+@njit(cache=True, parallel=True, fastmath=LOOP_MATH)
 def _csr_matvec(indptr, indices, data, x, out):
     # Unsigned column indices (no negative-index wrap per read) and a row's sum in any order: it vectorizes.
     for i in prange(out.shape[0]):
@@ -73,7 +74,7 @@ def csr_matvec(a, x, out=None) -> np.ndarray:
     return out
 
 
-@njit(cache=True, parallel=True, fastmath=NEAR_MATH)
+@njit(cache=True, parallel=True, fastmath=LOOP_MATH)
 def _restrict_pass(fill, indptr, indices, pts, rc, tab, dr, counts, out_indptr, out_indices, out_data):
     rc2 = rc * rc
     nt = tab.shape[0]
@@ -176,7 +177,7 @@ def _cell_keys(pts, lo, cell, dims):
 _COUNT, _FILL, _SUM, _SUM_GRAD = 0, 1, 2, 3
 
 
-@njit(cache=True, parallel=True, fastmath=NEAR_MATH)
+@njit(cache=True, parallel=True, fastmath=LOOP_MATH)
 def _near_pass(mode, tp, sp_, order, start, lo, cell, dims, rc, tab, dtab, dr, wsorted, counts, indptr, indices, data,
                out, grad):
     """The one loop over (target, source) pairs within ``rc``, by the 27 cells around each target.
