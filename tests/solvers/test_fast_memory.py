@@ -110,6 +110,31 @@ def test_plan_matches_the_arrays_a_grid_allocates():
     assert whole["total"] >= whole["fit"] > plan["grid"] + plan["near"]
 
 
+def test_far_centres_block_is_stored_within_its_share_of_the_memory_limit(monkeypatch):
+    """The kernel block between the centres and the far ones the grid leaves out (an exterior sphere) is
+    stored when it fits in OUTSIDE_BLOCK_SHARE of the limit (the grid's budget), else summed directly at
+    every product; the memory plan counts the block's real bytes exactly when it is stored."""
+    from o3drbf.solvers.fast import grid
+
+    kernel = MultiOrder(10.0, 0.01)
+    far = np.random.default_rng(4).normal(size=(12, 3))
+    c = np.vstack([torus_centres(3000), 6.0 * far / np.linalg.norm(far, axis=1, keepdims=True)])
+    budget = 4 * GB
+    monkeypatch.setattr(grid, "OUTSIDE_BLOCK_MIN", 0)
+    block = 8 * len(c) * 12
+    for share, stored in ((1.01 * block / budget, True), (0.99 * block / budget, False)):
+        monkeypatch.setattr(grid, "OUTSIDE_BLOCK_SHARE", share)
+        assert grid.outside_block_bytes(budget) == int(share * budget)
+        op = fast.GridSum(kernel, c, eps=1e-6, budget=budget)
+        assert len(op.outside) == 12
+        held = op._outside_block()
+        assert (held is not None) == stored
+        plan = fast.memory_plan(kernel, c, limit=budget)["parts"]
+        assert plan.get("far centres", 0) == (sum(a.nbytes for a in held) if stored else 0)
+    monkeypatch.setattr(grid, "OUTSIDE_BLOCK_MIN", 256 * 2**20)
+    assert grid.outside_block_bytes(budget) == 256 * 2**20  # a floor on small machines
+
+
 def test_looser_companions_never_take_a_finer_grid():
     """The 1e-3 and 1e-4 companions (relaxed products) have grids no finer than the product's own:
     at 300,000 constraints a 300-neighbour companion needed more FFT memory than the product."""

@@ -20,7 +20,8 @@ from o3drbf.solvers.fast.neighbours import (HAVE_GRID, LOOP_MATH, CellList, csr_
 from o3drbf.solvers.fast.tolerance import DEFAULT_EPS, clip_eps
 
 __all__ = ["GridSum", "Mesh", "fast_operator", "grid_bytes", "grid_budget", "outside_centres", "split_design",
-           "near_table", "near_entries", "long_part", "GRID_BUDGET", "DIRECT_PAIRS"]
+           "near_table", "near_entries", "long_part", "GRID_BUDGET", "DIRECT_PAIRS", "OUTSIDE_BLOCK_SHARE", "OUTSIDE_BLOCK_MIN",
+           "outside_block_bytes"]
 
 
 def _components(kernel):
@@ -213,6 +214,17 @@ DIRECT_PAIRS = 50_000_000
 #: all the centres, whose FFTs would cost as much for the few sources as for all of them.
 SUBSET_SHARE = 0.25
 SUBSET_NEIGHBOURS = 32
+#: A stored block of the far centres' kernel (:meth:`GridSum._outside_block`, :meth:`GridSum.at`) may take this
+#: share of the memory limit, and at least ``OUTSIDE_BLOCK_MIN`` bytes: a fixed cap summed the exterior
+#: sphere's few dozen centres directly at every product (several times a product) from about half a million centres.
+OUTSIDE_BLOCK_SHARE = 0.05
+OUTSIDE_BLOCK_MIN = 256 * 2**20
+
+
+def outside_block_bytes(limit: int | None = None) -> int:
+    """Bytes a stored block of the far centres' kernel may take under the memory limit ``limit``
+    (default :func:`memory_limit_or_default`): ``OUTSIDE_BLOCK_SHARE`` of it, at least ``OUTSIDE_BLOCK_MIN``."""
+    return int(max(OUTSIDE_BLOCK_MIN, OUTSIDE_BLOCK_SHARE * memory_limit_or_default(limit)))
 
 
 def grid_bytes(lo, hi, h: float, half: int) -> int:
@@ -485,7 +497,7 @@ class GridSum:
         if cells is None and self.store:
             csr_matvec(self.near, wc, outc)
             return
-        if cells is None:  # sources = targets: each pair once
+        if cells is None:  # sources = targets
             outc += self.cells.self_sum(wc, self.tab, self.dr)
             return
         part = np.zeros(len(self._cc))
@@ -542,18 +554,24 @@ class GridSum:
         out[o] = wc @ to_core + among @ w[o]
         return out
 
-    #: Bytes of the stored kernel block between the grid's centres and the far ones it leaves out
-    #: (:meth:`_outside_block`), and of the one between :meth:`at`'s targets and the far centres; above it,
-    #: the far centres are summed directly at every product.
-    OUTSIDE_BLOCK_BYTES = 256 * 2**20
+    #: A fixed cap on the bytes of the stored kernel block between the grid's centres and the far ones it
+    #: leaves out (:meth:`_outside_block`), and of the one between :meth:`at`'s targets and the far centres,
+    #: or None: :func:`outside_block_bytes` of the grid's budget.  Above it, the far centres are summed
+    #: directly at every product.
+    OUTSIDE_BLOCK_BYTES = None
+
+    @property
+    def outside_cap(self) -> int:
+        """Bytes a stored block of the far centres' kernel may take (:attr:`OUTSIDE_BLOCK_BYTES`)."""
+        return outside_block_bytes(self.budget) if self.OUTSIDE_BLOCK_BYTES is None else int(self.OUTSIDE_BLOCK_BYTES)
 
     def _outside_block(self):
         """``(phi(core centres, far centres), phi(far, far))``, built on first use and shared with the looser
-        companions (same centres), or None when it would exceed :attr:`OUTSIDE_BLOCK_BYTES`."""
+        companions (same centres), or None when it would exceed :attr:`outside_cap`."""
         held = self.__dict__.setdefault("_outside_held", [])
         if not held:
             o = self.outside
-            if len(self._cc) * len(o) * 8 > self.OUTSIDE_BLOCK_BYTES:
+            if len(self._cc) * len(o) * 8 > self.outside_cap:
                 held.append(None)
             else:
                 far = self.centres[o]
@@ -646,7 +664,7 @@ class GridSum:
         o = self.outside
         # The far centres' kernel at the targets: stored once when small (a product's cost otherwise).
         block = kernel_matrix(self.kernel, ts, self.centres[o], order="C") \
-            if self._core is not None and len(ts) * len(o) * 8 <= self.OUTSIDE_BLOCK_BYTES else None
+            if self._core is not None and len(ts) * len(o) * 8 <= self.outside_cap else None
 
         def apply(w):
             w = np.asarray(w, dtype=float)

@@ -10,7 +10,8 @@ from scipy.spatial import cKDTree
 from o3drbf.rbf.kernels import MultiOrder
 from o3drbf.solvers.base import MemoryRefusal, memory_limit_or_default
 from o3drbf.solvers.fast.fgmres import RESTART
-from o3drbf.solvers.fast.grid import SUBSET_NEIGHBOURS, SUBSET_SHARE, GridSum, Mesh, near_entries, near_table, outside_centres, split_design
+from o3drbf.solvers.fast.grid import (SUBSET_NEIGHBOURS, SUBSET_SHARE, Mesh, near_entries, near_table, outside_block_bytes, outside_centres,
+                                      split_design)
 from o3drbf.solvers.fast.neighbours import (HAVE_GRID, NNZ_BYTES, default_neighbours, neighbour_radius, product_neighbours,
                                             store_near)
 from o3drbf.solvers.fast.tolerance import DEFAULT_EPS, clip_eps, product_tolerance
@@ -25,8 +26,8 @@ KRYLOV_PLANNED = 50
 _FMM_BYTES_PER_POINT = 8_000
 #: Bytes per centre of the kd-tree, the sorted copies and the index arrays every product keeps.
 _PER_CENTRE_BYTES = 200
-#: Bytes per centre of the output rows of a near field summed on the fly (a row per block of cells).
-_ON_THE_FLY_BYTES = 8 * 8
+#: Bytes per centre of a near field summed on the fly (its sum in cell order, then in the centres').
+_ON_THE_FLY_BYTES = 2 * 8
 
 
 def fast_memory(n: int, restart: int = RESTART, eps: float = 1e-6) -> int:
@@ -137,7 +138,7 @@ def _twolevel_plan(kernel, centres, tree, lam_count, coarse_update_nnz, options=
         sub = centres[np.sort(np.random.default_rng(2).choice(n, mc, replace=False))]
         g = grid_plan(kernel, sub, cKDTree(sub), 1e-3, neighbours=SUBSET_NEIGHBOURS, near=False)
         block = 8 * n * len(g["outside"])  # its far centres' kernel at every centre, one a tolerance (GridSum.at)
-        total += g["grid"] + g["work"] + 32 * n + (2 * block if block <= GridSum.OUTSIDE_BLOCK_BYTES else 0)
+        total += g["grid"] + g["work"] + 32 * n + (2 * block if block <= outside_block_bytes(limit) else 0)
     elif mc < n:
         total += int(coarse_update_nnz * mc / n) * NNZ_BYTES
     if not nested:
@@ -206,6 +207,9 @@ def memory_plan(kernel, centres, rtol: float = 1e-6, eps: float | None = None, r
     main = near_choice(grid_plan(kernel, centres, tree, e, neighbours=product_neighbours(n, limit), memo=memo), limit=limit)
     out = main["outside"]
     parts = {"grid": main["grid"], "near": main["near"]}
+    far = 8 * len(out) * n  # the far centres' kernel at every centre (GridSum._outside_block)
+    if far <= outside_block_bytes(limit):
+        parts["far centres"] = far
     work = [main["work"]]
     rc300 = neighbour_radius(centres, tree, min(300, max(n // 300, 64)))
     tier_nnz = 0

@@ -234,54 +234,6 @@ def _near_pass(mode, tp, sp_, order, start, lo, cell, dims, rc, tab, dtab, dr, w
                 grad[p, 0] += g0; grad[p, 1] += g1; grad[p, 2] += g2
 
 
-@njit(cache=True, parallel=True)
-def _near_sym(sp_, start, dims, rc, tab, dr, wsorted, cell_lo, acc):
-    """``acc[t]`` = the near sum ``sum_q w_q tab(r_pq)`` at every point p (sorted order) from the pairs
-    of the cells ``cell_lo[t] <= key < cell_lo[t + 1]`` with their own and their 13 forward
-    neighbour cells, each pair evaluated once and added both ways (one output row per chunk t)."""
-    rc2 = rc * rc
-    nt = tab.shape[0]
-    for t in prange(acc.shape[0]):
-        out = acc[t]
-        for key in range(cell_lo[t], cell_lo[t + 1]):
-            a0, a1 = start[key], start[key + 1]
-            if a0 == a1:
-                continue
-            i0 = key // (dims[1] * dims[2]); j0 = (key // dims[2]) % dims[1]; k0 = key % dims[2]
-            for di in range(0, 2):
-                i = i0 + di
-                if i >= dims[0]:
-                    continue
-                for dj in range(-1 if di else 0, 2):
-                    j = j0 + dj
-                    if j < 0 or j >= dims[1]:
-                        continue
-                    for dk in range(-1 if (di or dj) else 0, 2):
-                        k = k0 + dk
-                        if k < 0 or k >= dims[2]:
-                            continue
-                        other = (i * dims[1] + j) * dims[2] + k
-                        same = other == key
-                        b0, b1 = start[other], start[other + 1]
-                        for p in range(a0, a1):
-                            x0 = sp_[p, 0]; x1 = sp_[p, 1]; x2 = sp_[p, 2]
-                            wp = wsorted[p]
-                            accp = 0.0
-                            for q in range(p if same else b0, b1):
-                                d0 = x0 - sp_[q, 0]; d1 = x1 - sp_[q, 1]; d2 = x2 - sp_[q, 2]
-                                r2 = d0 * d0 + d1 * d1 + d2 * d2
-                                if r2 > rc2:
-                                    continue
-                                x = math.sqrt(r2) / dr
-                                ii = min(int(x), nt - 2)
-                                f = x - ii
-                                v = tab[ii] * (1 - f) + tab[ii + 1] * f
-                                accp += wsorted[q] * v
-                                if q != p:
-                                    out[q] += wp * v
-                            out[p] += accp
-
-
 class CellList:
     """Points binned into cubic cells of side ``radius``, for the pairs of targets and points within ``radius``.
 
@@ -349,10 +301,12 @@ class CellList:
         self._pass(_FILL, targets, (tab, tab, dr), f64, i64, (indptr, indices, data), (f64, np.zeros((1, 3))))
         return sp.csr_matrix((data, indices, indptr), shape=(m, self.n))
 
-    def self_sum(self, w, tab, dr: float, chunks: int | None = None) -> np.ndarray:
+    def self_sum(self, w, tab, dr: float) -> np.ndarray:
         """``sum_j w_j tab(|p_i - p_j|)`` over the points within the radius of each point, at every
-        point (in the points' order): :meth:`add_sum` with the points as targets, each pair
-        evaluated once (the sum is symmetric).
+        point (in the points' order): :meth:`add_sum` with the points as targets, taken in cell
+        order (the points a target reads are those its neighbour targets read: cache-friendly).
+        Each pair is evaluated from both ends: a loop that evaluates it once and adds it both
+        ways writes to memory the loop also reads and does not vectorize, and took longer.
 
         Parameters
         ----------
@@ -360,20 +314,11 @@ class CellList:
             One weight a point.
         tab : (T,) array
         dr : float
-        chunks : int, optional
-            Blocks of cells summed in parallel, each into its own output row (default four a thread).
         """
-        if chunks is None:
-            chunks = 4 * (numba.get_num_threads() if HAVE_GRID else 1)
-        ncell = len(self.start) - 1
-        # Blocks of cells with about the same number of points.
-        cuts = np.searchsorted(self.start, np.linspace(0, self.n, chunks + 1)[1:-1])
-        cell_lo = np.unique(np.r_[0, np.minimum(cuts, ncell), ncell]).astype(np.int64)
-        acc = np.zeros((len(cell_lo) - 1, self.n))
-        _near_sym(self.sorted, self.start, self.dims, self.radius, tab, dr,
-                  np.ascontiguousarray(np.asarray(w, dtype=float)[self.order]), cell_lo, acc)
+        part = np.zeros(self.n)
+        self.add_sum(self.sorted, w, tab, tab, dr, part)
         out = np.empty(self.n)
-        out[self.order] = acc.sum(axis=0)
+        out[self.order] = part
         return out
 
     def add_sum(self, targets, w, tab, dtab, dr: float, out, grad=None) -> None:
