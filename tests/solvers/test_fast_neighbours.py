@@ -18,8 +18,13 @@ def _table(radius):
     return tab, dtab, dr
 
 
-@pytest.fixture
-def cloud():
+@pytest.fixture(params=[1, 2], ids=["cells of the radius", "cells of half the radius"])
+def cloud(request, monkeypatch):
+    """Points and targets; the cell lists built in the test take cells of the radius, then of half of it."""
+    from o3drbf.solvers.fast import neighbours
+
+    monkeypatch.setattr(neighbours, "CELLS_PER_POINT", 0 if request.param == 1 else 10**9)
+    assert CellList(np.zeros((2, 3)), 1.0).reach == request.param
     rng = np.random.default_rng(4)
     pts = rng.uniform(-1, 1, (700, 3))
     targets = np.ascontiguousarray(np.vstack([rng.uniform(-1.2, 1.2, (300, 3)), pts[:50]]))  # some coincide with points

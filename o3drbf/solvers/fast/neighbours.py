@@ -178,15 +178,16 @@ _COUNT, _FILL, _SUM, _SUM_GRAD = 0, 1, 2, 3
 
 
 @njit(cache=True, parallel=True, fastmath=LOOP_MATH)
-def _near_pass(mode, tp, sp_, order, start, lo, cell, dims, rc, tab, dtab, dr, wsorted, counts, indptr, indices, data,
+def _near_pass(mode, tp, sp_, order, start, lo, cell, reach, dims, rc, tab, dtab, dr, wsorted, counts, indptr, indices, data,
                out, grad):
-    """The one loop over (target, source) pairs within ``rc``, by the 27 cells around each target.
+    """The one loop over (target, source) pairs within ``rc``, by the (2 reach + 1)^3 cells around each target
+    (cells of side ``rc / reach``).
 
     ``mode`` _COUNT: ``counts[p]`` = pairs of target p; _FILL: the CSR row p (``indptr``, ``indices``
     = source index, ``data`` = table value); _SUM / _SUM_GRAD: ``out[p] += sum_q w_q tab(r_pq)`` (and
     ``grad[p] += sum_q w_q dtab(r_pq) (t_p - s_q)``).  The table is linearly interpolated at ``r / dr``.
-    ``sp_`` is (3, N): the sorted points' coordinates, one row each.  The three cells along z in a
-    column of the 27 are consecutive keys, so their points are one run; points and tables are read
+    ``sp_`` is (3, N): the sorted points' coordinates, one row each.  The cells along z in a column
+    are consecutive keys, so their points are one run; points and tables are read
     with unsigned offsets (no negative-index wrap) and the sums may be reordered, so the runs vectorize."""
     m = tp.shape[0]
     rc2 = rc * rc
@@ -195,11 +196,11 @@ def _near_pass(mode, tp, sp_, order, start, lo, cell, dims, rc, tab, dtab, dr, w
     for p in prange(m):
         t0 = tp[p, 0]; t1 = tp[p, 1]; t2 = tp[p, 2]
         i0 = int((t0 - lo[0]) / cell); j0 = int((t1 - lo[1]) / cell); k0 = int((t2 - lo[2]) / cell)
-        k_lo = max(k0 - 1, 0); k_hi = min(k0 + 2, dims[2])
+        k_lo = max(k0 - reach, 0); k_hi = min(k0 + reach + 1, dims[2])
         c = indptr[p] if mode == _FILL else 0
         acc = 0.0; g0 = 0.0; g1 = 0.0; g2 = 0.0
-        for i in range(max(i0 - 1, 0), min(i0 + 2, dims[0])):
-            for j in range(max(j0 - 1, 0), min(j0 + 2, dims[1])):
+        for i in range(max(i0 - reach, 0), min(i0 + reach + 1, dims[0])):
+            for j in range(max(j0 - reach, 0), min(j0 + reach + 1, dims[1])):
                 if k_lo >= k_hi:
                     continue
                 row = (i * dims[1] + j) * dims[2]
@@ -234,8 +235,14 @@ def _near_pass(mode, tp, sp_, order, start, lo, cell, dims, rc, tab, dtab, dr, w
                 grad[p, 0] += g0; grad[p, 1] += g1; grad[p, 2] += g2
 
 
+#: A cell list takes cells of half its radius when there are at most this many a point (else of the radius:
+#: a few far points, such as an exterior sphere, can make the box, and the cells, far larger than the data).
+CELLS_PER_POINT = 4
+
+
 class CellList:
-    """Points binned into cubic cells of side ``radius``, for the pairs of targets and points within ``radius``.
+    """Points binned into cubic cells of side ``radius`` (or half of it), for the pairs of targets and points
+    within ``radius``.
 
     One compiled loop (over the 27 cells around each target) serves both uses:
     the sparse matrix of a tabulated radial function over those pairs
@@ -264,8 +271,13 @@ class CellList:
         self.radius = float(radius)
         self.n = len(pts)
         self.lo = pts.min(axis=0)
-        self.dims = np.maximum(np.ceil((pts.max(axis=0) - self.lo) / self.radius).astype(np.int64), 1)
-        key = _cell_keys(pts, self.lo, self.radius, self.dims)
+        span = pts.max(axis=0) - self.lo
+        # Cells of half the radius where there are not many more of them than points: a target then reads
+        # 5^3 of them, 15.6 cubed radii (27 with cells of the radius), fewer pairs beyond the radius.
+        self.reach = 1 + int(np.prod(np.ceil(2 * span / self.radius) + 1) <= CELLS_PER_POINT * max(self.n, 1))
+        self.cell = self.radius / self.reach
+        self.dims = np.maximum(np.ceil(span / self.cell).astype(np.int64), 1)
+        key = _cell_keys(pts, self.lo, self.cell, self.dims)
         self.order = np.argsort(key, kind="stable")
         self.start = np.searchsorted(key[self.order], np.arange(int(np.prod(self.dims)) + 1)).astype(np.int64)
         self.sorted = np.ascontiguousarray(pts[self.order])
@@ -275,7 +287,7 @@ class CellList:
     def _pass(self, mode, targets, tables, wsorted, counts, csr, sums):
         """One :func:`_near_pass`: ``tables`` (tab, dtab, dr), ``csr`` (indptr, indices, data), ``sums`` (out, grad)."""
         tab, dtab, dr = tables
-        _near_pass(mode, targets, self._rows, self._order32, self.start, self.lo, self.radius, self.dims,
+        _near_pass(mode, targets, self._rows, self._order32, self.start, self.lo, self.cell, self.reach, self.dims,
                    self.radius, tab, dtab, dr, wsorted, counts, *csr, *sums)
 
     def matrix(self, targets, tab, dr: float) -> sp.csr_matrix:
