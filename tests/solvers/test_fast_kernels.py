@@ -108,6 +108,9 @@ def test_csr_matvec_is_scipys_product_and_adds_in_place():
     out = np.ones(300)
     assert csr_matvec(a, x, out) is out
     assert np.allclose(out, 1.0 + a @ x, rtol=1e-14, atol=1e-14)
+    single = a.astype(np.float32)  # the local step's matrix: float32 entries, summed in double precision
+    want = single.astype(np.float64) @ x
+    assert np.abs(csr_matvec(single, x) - want).max() < 1e-13 * np.abs(want).max()
 
 
 def test_far_centres_block_and_direct_sums_agree_with_dense():

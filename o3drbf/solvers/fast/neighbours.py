@@ -44,14 +44,15 @@ def _csr_matvec(indptr, indices, data, x, out):
     for i in prange(out.shape[0]):
         acc = 0.0
         for k in range(indptr[i], indptr[i + 1]):
-            acc += data[k] * x[np.uint64(indices[k])]
+            acc += np.float64(data[k]) * x[np.uint64(indices[k])]
         out[i] += acc
 
 
 def csr_matvec(a, x, out=None) -> np.ndarray:
-    """``a @ x`` for a CSR matrix ``a`` and a vector ``x``, on all threads (SciPy's product is serial);
-    with ``out``, ``out += a @ x`` in place and ``out`` returned.  Each row is summed by the same
-    code whichever thread takes it, so the result does not depend on the thread count.
+    """``a @ x`` for a CSR matrix ``a`` (float64 or float32 entries) and a vector ``x``, on all threads
+    (SciPy's product is serial); with ``out``, ``out += a @ x`` in place and ``out`` returned.  Each row
+    is summed in double precision by the same code whichever thread takes it, so the result does not
+    depend on the thread count.
 
     Examples
     --------
@@ -62,7 +63,7 @@ def csr_matvec(a, x, out=None) -> np.ndarray:
     True
     """
     x = np.ascontiguousarray(x, dtype=float)
-    if not HAVE_GRID or not sp.isspmatrix_csr(a) or a.dtype != np.float64:  # pragma: no cover
+    if not HAVE_GRID or not sp.isspmatrix_csr(a) or a.dtype not in (np.float64, np.float32):  # pragma: no cover
         res = a @ x
         if out is None:
             return res
@@ -290,7 +291,7 @@ class CellList:
         _near_pass(mode, targets, self._rows, self._order32, self.start, self.lo, self.cell, self.reach, self.dims,
                    self.radius, tab, dtab, dr, wsorted, counts, *csr, *sums)
 
-    def matrix(self, targets, tab, dr: float) -> sp.csr_matrix:
+    def matrix(self, targets, tab, dr: float, dtype=np.float64) -> sp.csr_matrix:
         """CSR matrix (targets x points) of ``tab`` (sampled every ``dr``, interpolated linearly) at each
         pair's distance, over the pairs within the radius.
 
@@ -300,6 +301,8 @@ class CellList:
         tab : (T,) array
             The function at ``r = 0, dr, 2 dr, ...``; it must reach beyond the radius.
         dr : float
+        dtype : {numpy.float64, numpy.float32}
+            Of the entries (computed in double precision, stored in this one).
         """
         m = len(targets)
         i64, f64 = np.zeros(1, np.int64), np.zeros(1)
@@ -309,7 +312,7 @@ class CellList:
         np.cumsum(counts, out=indptr[1:])
         del counts
         indices = np.empty(indptr[-1], np.int32)
-        data = np.empty(indptr[-1])
+        data = np.empty(indptr[-1], dtype)
         self._pass(_FILL, targets, (tab, tab, dr), f64, i64, (indptr, indices, data), (f64, np.zeros((1, 3))))
         return sp.csr_matrix((data, indices, indptr), shape=(m, self.n))
 
