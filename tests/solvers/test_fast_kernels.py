@@ -189,3 +189,21 @@ def test_local_step_radius_from_a_sample_of_many_centres_is_the_full_median(monk
     _, r1, _ = precondition.tapered_near(kernel, pts, tree, 32, lambda phir: 1.0)
     _, r2, _ = precondition.tapered_near(kernel, pts, tree, 32, lambda phir: 1.0)
     assert r1 == r2 and r1 != full and abs(r1 / full - 1) < 0.01
+
+
+@pytest.mark.parametrize("span", [(7, 9, 5), (33, 20, 17)])
+def test_kernel_transform_by_mirrored_views_is_the_full_transform(span):
+    """The potential multiplies each block of columns by K's transform read from its kept octant through
+    mirrored views; the same numbers as the full transform (built by indexing) in every kind of block:
+    first half, mirrored half, across the middle, one column."""
+    rng = np.random.default_rng(0)
+    c = rng.uniform(0, 1, (500, 3)) * np.array(span) / 30
+    m = fast.GridSum(MultiOrder(10, 0.01), c, eps=1e-6).mesh
+    fx, fy, fz = m.fshape
+    mirror = lambda f: np.minimum(np.arange(f), f - np.arange(f))  # noqa: E731
+    full = m.khat[np.ix_(mirror(fx), mirror(fy))]
+    for j0, j1 in [(0, fy), (0, 1), (fy // 2 - 1, fy // 2 + 2), (fy // 2 + 1, fy), (fy - 1, fy), (fy // 2, fy // 2 + 1)]:
+        blk = rng.normal(size=(fx, j1 - j0, m.khat.shape[2])) + 0j
+        want = blk * full[:, j0:j1]
+        m._times_khat(blk, j0, j1)
+        assert np.array_equal(blk, want), (j0, j1)

@@ -295,9 +295,9 @@ class Mesh:
         mx, my, mz = self.shape
         fx, fy, fz = self.fshape
         workers = _fft_workers()
-        grid = np.zeros(self.shape, dtype=self.dtype)
+        grid = np.zeros((mx, my, fz), dtype=self.dtype)  # zero-padded along z from the start (no padded copy)
         _spread(pts, w, self.origin, self.h, self.s, self.half, grid)
-        a = _sfft.rfft(grid, n=fz, axis=2, workers=workers)
+        a = _sfft.rfft(grid, axis=2, workers=workers)
         del grid
         b = _sfft.fft(a, n=fy, axis=1, workers=workers, overwrite_x=True)
         del a
@@ -305,7 +305,7 @@ class Mesh:
         step = max(1, int(self.SLAB_BYTES // (b.itemsize * fx * b.shape[2])))
         for j in range(0, fy, step):
             blk = _sfft.fft(b[:, j : j + step], n=fx, axis=0, workers=workers)
-            blk *= self.khat[np.ix_(self._mx, self._my[j : j + step])]
+            self._times_khat(blk, j, min(j + step, fy))
             b[:, j : j + step] = _sfft.ifft(blk, axis=0, workers=workers, overwrite_x=True)[:mx]
             del blk
         c = np.ascontiguousarray(_sfft.ifft(b, axis=1, workers=workers, overwrite_x=True)[:, :my])
@@ -316,6 +316,21 @@ class Mesh:
         del u
         out *= self.h**3
         return out
+
+    def _times_khat(self, blk, j0, j1):
+        """``blk *= K's transform`` over columns ``j0 <= y < j1`` of the whole x range, from the kept octant
+        (K[x] = K[fx - x], K[y] = K[fy - y]): by views, the mirrored halves read backwards."""
+        fx, fy = self.fshape[0], self.fshape[1]
+        hx = self.khat.shape[0]
+        if j1 - 1 <= fy - (j1 - 1):  # every column in the first half
+            ky = slice(j0, j1)
+        elif j0 >= fy - j0:  # every column mirrored: y -> fy - y
+            ky = slice(fy - j0, fy - j1, -1)
+        else:  # (the one block across the middle)
+            blk *= self.khat[np.ix_(self._mx, self._my[j0:j1])]
+            return
+        blk[:hx] *= self.khat[:, ky]
+        blk[hx:] *= self.khat[fx - hx : 0 : -1, ky]
 
     def gather(self, u, pts, gradient):
         out = np.empty(len(pts))
