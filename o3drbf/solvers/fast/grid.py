@@ -840,7 +840,7 @@ def outside_centres(centres, tree: cKDTree, radius: float, max_pairs: int | None
     cap = DIRECT_PAIRS if max_pairs is None else int(max_pairs)
     if n < 3:
         return np.zeros(0, np.int64)
-    d, _ = tree.query(centres, k=2)
+    d, _ = tree.query(centres, k=2, workers=-1)
     busy = d[:, 1] <= radius
     if busy.sum() < 2:
         return np.zeros(0, np.int64)

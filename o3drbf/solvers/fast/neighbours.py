@@ -280,7 +280,8 @@ class CellList:
         self.dims = np.maximum(np.ceil(span / self.cell).astype(np.int64), 1)
         key = _cell_keys(pts, self.lo, self.cell, self.dims)
         self.order = np.argsort(key, kind="stable")
-        self.start = np.searchsorted(key[self.order], np.arange(int(np.prod(self.dims)) + 1)).astype(np.int64)
+        self.start = np.zeros(int(np.prod(self.dims)) + 1, np.int64)  # the first point of each cell
+        np.cumsum(np.bincount(key, minlength=len(self.start) - 1), out=self.start[1:])
         self.sorted = np.ascontiguousarray(pts[self.order])
         self._rows = np.ascontiguousarray(self.sorted.T)  # (3, N): one coordinate a row, for the compiled loop
         self._order32 = self.order.astype(np.int32)
