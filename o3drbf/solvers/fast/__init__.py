@@ -58,7 +58,9 @@ neighbour within the near-field radius; the few isolated centres beyond it
 summed directly, both as sources and as targets (:func:`outside_centres`:
 at most ``DIRECT_PAIRS`` kernel evaluations a product, or 0.1 % of the
 centres), so that the grid's box, and its memory, is set by the data rather
-than by that sphere.  The grid spacing follows the near-field radius (a
+than by that sphere.  Their kernel at every centre is computed once and kept
+where it fits in ``OUTSIDE_BLOCK_SHARE`` of the memory limit
+(:func:`~o3drbf.solvers.fast.grid.outside_block_bytes`).  The grid spacing follows the near-field radius (a
 neighbour count), not tau.
 
 **Gaussian.**  exp(-(r/sigma)^2) is truncated at ``r = sigma
@@ -84,7 +86,8 @@ p0 is solved for, not projected away).  M is two-level multiplicative:
    small, else a fast sum from the coarse centres);
 3. local: ``z += S^{-1} r'`` with S the near-field matrix of the *tapered*
    kernel ``phi(r) - phi(R)`` on the k = 64 nearest neighbours (positive
-   definite, unlike a plain cut-off), its diagonal damped by 2, solved by
+   definite, unlike a plain cut-off; entries stored in single precision,
+   summed in double), its diagonal damped by 2, solved by
    10 Jacobi-preconditioned CG steps (exact local solves gave the same
    iteration counts with a large fill-in, hence CG).
 

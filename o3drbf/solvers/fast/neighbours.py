@@ -245,7 +245,7 @@ class CellList:
     """Points binned into cubic cells of side ``radius`` (or half of it), for the pairs of targets and points
     within ``radius``.
 
-    One compiled loop (over the 27 cells around each target) serves both uses:
+    One compiled loop (over the cells around each target) serves both uses:
     the sparse matrix of a tabulated radial function over those pairs
     (:meth:`matrix`) and its sum with weights, with gradients (:meth:`add_sum`).
 
