@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 from o3drbf.prep.sampling import spatial_order  # (the solvers' order of the centres; defined with the points)
 from o3drbf.solvers.base import memory_limit_or_default
 
-__all__ = ["HAVE_GRID", "NNZ_BYTES", "PRODUCT_NEIGHBOURS_MAX", "NEAR_STORE_BYTES", "store_near", "pairs_chunks", "mean_neighbours", "sparse_matrix",
+__all__ = ["HAVE_GRID", "NNZ_BYTES", "PRODUCT_NEIGHBOURS_MAX", "NEAR_STORE_BYTES", "CELLS_PER_POINT", "store_near", "pairs_chunks", "mean_neighbours", "sparse_matrix",
            "CellList", "default_neighbours", "product_neighbours", "neighbour_radius", "csr_matvec", "restrict_near", "spatial_order"]
 
 #: Bytes per stored sparse entry (float64 value, int32 column index).
