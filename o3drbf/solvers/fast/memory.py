@@ -130,7 +130,7 @@ def _twolevel_plan(kernel, centres, tree, lam_count, coarse_update_nnz, options=
 
     st = replace(TwoLevelSettings(), **(options or {}))  # the preconditioner's own defaults
     n = len(centres)
-    total = (NNZ_BYTES - 4) * n * (st.neighbours + 1) + 64 * n  # the tapered near matrix (float32, built in place by a cell list)
+    total = (4 + 4) * n * (st.neighbours + 1) + 64 * n  # the tapered near matrix: a float32 entry and an int32 column each (built in place)
     mc, nested = coarse_size(n, st)
     if mc < n and 8 * n * mc <= st.dense_budget:
         total += 8 * n * mc
