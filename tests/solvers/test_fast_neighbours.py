@@ -101,7 +101,7 @@ def test_spatial_order_keeps_neighbours_close_in_memory():
 def test_neighbour_radius_is_the_sampled_median_and_is_found_once_per_centres_and_k():
     from scipy.spatial import cKDTree
 
-    from o3drbf.solvers.fast.neighbours import neighbour_radius
+    from o3drbf.solvers.fast.neighbours import RADIUS_SAMPLE, neighbour_radius, radius_sample
 
     pts = np.random.default_rng(7).uniform(-1, 1, (3000, 3))
 
@@ -113,12 +113,26 @@ def test_neighbour_radius_is_the_sampled_median_and_is_found_once_per_centres_an
             return super().query(*args, **kwargs)
 
     tree = Counting(pts)
-    sample = pts[np.random.default_rng(0).choice(len(pts), 2000, replace=False)]
-    d = np.sort(np.linalg.norm(sample[:, None, :] - pts[None, :, :], axis=2), axis=1)
+    pick = radius_sample(pts)
+    assert len(pick) == RADIUS_SAMPLE == len(np.unique(pick))
+    d = np.sort(np.linalg.norm(pts[pick][:, None, :] - pts[None, :, :], axis=2), axis=1)  # brute force
     for k in (20, 50):
         assert neighbour_radius(pts, tree, k) == pytest.approx(np.median(d[:, k - 1]), rel=1e-12)
     assert Counting.calls == 2
     assert neighbour_radius(pts, tree, 20) == pytest.approx(np.median(d[:, 19]), rel=1e-12) and Counting.calls == 2
+    # The same centres in another order: the same sample, so the same radius, found without a query.
+    perm = np.random.default_rng(3).permutation(len(pts))
+    assert np.array_equal(np.sort(perm[radius_sample(pts[perm])]), np.sort(pick))
+    assert neighbour_radius(pts[perm], Counting(pts[perm]), 20) == neighbour_radius(pts, tree, 20) and Counting.calls == 2
+    few = pts[:500]  # fewer than the sample: every centre, in any order (found once)
+    calls = Counting.calls
+    assert neighbour_radius(few[::-1], Counting(few[::-1]), 20) == neighbour_radius(few, Counting(few), 20)
+    assert Counting.calls == calls + 1
+    calls = Counting.calls
     moved = pts + 1e-3
     neighbour_radius(moved, Counting(moved), 20)
-    assert Counting.calls == 3  # other centres: found afresh
+    assert Counting.calls == calls + 1  # other centres: found afresh
+    swapped = pts.copy()
+    swapped[0], swapped[1] = pts[1] + 1e-3, pts[0]  # one point moved (the sum of hashes changes)
+    neighbour_radius(swapped, Counting(swapped), 20)
+    assert Counting.calls == calls + 2

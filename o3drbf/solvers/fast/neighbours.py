@@ -12,7 +12,7 @@ from o3drbf.prep.sampling import spatial_order  # (the solvers' order of the cen
 from o3drbf.solvers.base import memory_limit_or_default
 
 __all__ = ["HAVE_GRID", "NNZ_BYTES", "PRODUCT_NEIGHBOURS_MAX", "NEAR_STORE_BYTES", "CELLS_PER_POINT", "store_near", "pairs_chunks", "mean_neighbours", "sparse_matrix",
-           "CellList", "default_neighbours", "product_neighbours", "neighbour_radius", "csr_matvec", "restrict_near", "spatial_order"]
+           "CellList", "default_neighbours", "product_neighbours", "RADIUS_SAMPLE", "radius_sample", "neighbour_radius", "csr_matvec", "restrict_near", "spatial_order"]
 
 #: Bytes per stored sparse entry (float64 value, int32 column index).
 NNZ_BYTES = 12
@@ -403,24 +403,63 @@ def store_near(entries: float, limit: int | None = None) -> bool:
     return need <= (bound if NEAR_STORE_BYTES is None else min(NEAR_STORE_BYTES, bound))
 
 
-#: Radii :func:`neighbour_radius` found, by the centres' digest and k: a fit asks the same ones several times
-#: (its memory plan, its products, the evaluator), each a k-nearest query of up to 1,000 neighbours.
+#: Radii :func:`neighbour_radius` found, by the centres (in any order) and k: a fit asks the same ones several
+#: times (its memory plan on the centres as given, its products and the evaluator on them in space order), each a
+#: k-nearest query of up to 1,000 neighbours.
 _RADII: dict = {}
 _RADII_KEPT = 64
+#: Centres sampled by :func:`neighbour_radius`.
+RADIUS_SAMPLE = 2000
+
+
+def radius_sample(centres, count: int = RADIUS_SAMPLE) -> np.ndarray:
+    """Indices of ``count`` centres picked by a hash of their coordinates (all of them when there are fewer).
+
+    The same centres are picked whatever their order: a permutation of
+    ``centres`` gives the same points (so the same median).
+    """
+    centres = np.ascontiguousarray(centres, dtype=float)
+    n = len(centres)
+    if n <= count:
+        return np.arange(n)
+    key = _coordinate_hash(centres)
+    pick = np.argpartition(key, count - 1)[:count]
+    return pick[np.argsort(key[pick], kind="stable")]
+
+
+def _coordinate_hash(centres: np.ndarray) -> np.ndarray:
+    """A 64-bit mix of each row's coordinate bits (splitmix64 of their weighted sum)."""
+    bits = centres.view(np.uint64)
+    with np.errstate(over="ignore"):
+        h = bits[:, 0] * np.uint64(0x9E3779B97F4A7C15) + bits[:, 1] * np.uint64(0xC2B2AE3D27D4EB4F) \
+            + bits[:, 2] * np.uint64(0x165667B19E3779F9)
+        h ^= h >> np.uint64(30)
+        h *= np.uint64(0xBF58476D1CE4E5B9)
+        h ^= h >> np.uint64(27)
+        h *= np.uint64(0x94D049BB133111EB)
+        h ^= h >> np.uint64(31)
+    return h
 
 
 def neighbour_radius(centres, tree: cKDTree, k: int) -> float:
-    """Median distance from a seeded sample of 2,000 centres to their ``k``-th nearest centre (self included)."""
+    """Median distance from :data:`RADIUS_SAMPLE` centres (:func:`radius_sample`) to their ``k``-th nearest
+    centre (self included); the same for the centres in any order."""
     import hashlib
 
     centres = np.ascontiguousarray(centres, dtype=float)
     n = len(centres)
     k = int(min(max(k, 8), max(n // 4, 2)))
-    key = (centres.shape, hashlib.blake2b(centres.data, digest_size=16).digest(), k)
+    pick = radius_sample(centres)
+    sample = centres[pick]
+    # By the sample (in hash order) and, for the rest, order-free sums of the hashes: a permutation hits.
+    h = _coordinate_hash(centres) if n > RADIUS_SAMPLE else np.zeros(1, np.uint64)
+    with np.errstate(over="ignore"):
+        whole = (int(h.sum(dtype=np.uint64)), int(np.bitwise_xor.reduce(h)), int((h * h).sum(dtype=np.uint64)))
+    if n <= RADIUS_SAMPLE:
+        sample = sample[np.lexsort(sample.T[::-1])]
+    key = (centres.shape, hashlib.blake2b(np.ascontiguousarray(sample).data, digest_size=16).digest(), whole, k)
     if key in _RADII:
         return _RADII[key]
-    rng = np.random.default_rng(0)
-    sample = centres[rng.choice(n, min(n, 2000), replace=False)]
     d, _ = tree.query(sample, k=[k], workers=-1)  # the k-th only, on every core
     radius = max(float(np.median(d[:, 0])), 1e-6 * max(float(np.ptp(centres, axis=0).max()), 1e-300))
     if len(_RADII) >= _RADII_KEPT:
