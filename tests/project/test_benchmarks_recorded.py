@@ -35,3 +35,17 @@ def test_a_tiles_page_without_its_run_is_caught(tmp_path):
     assert len(found) == 1 and "69.4" in found[0]
     (tmp_path / "tiles.md").write_text("| o3drbf tiles | 69.4 |\n")
     assert check_recorded.problems(tmp_path, page) == []
+
+
+def test_the_user_path_tables_say_which_targets_are_met():
+    import user_path
+
+    row = {"tool": "o3drbf", "rc": 0, "cpu": 1.0, "detail": "", "stages": []}
+    rows = [dict(row, case="torus 1M, --all-points", seconds=578.9, gb=5.71)]
+    text = user_path.tables(rows, 0.2)
+    assert "| torus 1M, --all-points: seconds | 578.90 | 300 | no |" in text
+    assert "| torus 1M, --all-points: peak GB | 5.71 | 8 | yes |" in text
+    assert "o3drbf / peer" not in text  # no peer ran: no empty ratio table
+    rows += [dict(row, case="scan 27k", seconds=4.0, gb=0.6), dict(row, case="scan 27k", tool="Poisson d8", seconds=2.0, gb=0.3)]
+    text = user_path.tables(rows, 0.2)
+    assert "| scan 27k vs Poisson d8 | 2.00 | 1.5 | no |" in text
