@@ -4,7 +4,9 @@ A shared machine's load moves from one minute to the next, so two revisions time
 do not compare; run in turn, each pair of runs sees about the same load.  The other revision is
 ``git archive REV o3drbf`` unpacked into a temporary folder and put first on ``PYTHONPATH`` (this
 checkout's editable install bypassed: the imported module's path is checked), run by this
-checkout's Python; its Numba cache is warmed by one untimed run first, and so is this checkout's.
+checkout's Python; both trees are byte-compiled first (a tree without ``.pyc`` files, with
+PYTHONDONTWRITEBYTECODE set, compiles every module at every run), and each side's Numba cache is
+warmed by one untimed run.
 
     python benchmarks/interleaved.py INPUT [--rev main] [--runs 3]
     python benchmarks/interleaved.py [--rev main] [--runs 3] -- INPUT EXTRA CLI ARGS   (e.g. --surface-count 300000)
@@ -41,7 +43,14 @@ def unpack(rev: str, folder: Path) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     archive = subprocess.run(["git", "-C", str(ROOT), "archive", rev, "o3drbf"], capture_output=True, check=True).stdout
     subprocess.run(["tar", "-x", "-C", str(folder)], input=archive, check=True)
+    compiled(folder / "o3drbf")
     return folder
+
+
+def compiled(package: Path) -> None:
+    """Byte-compile ``package`` (``compileall``): with PYTHONDONTWRITEBYTECODE set no run writes its
+    ``.pyc``, and a tree without them would compile every module it imports at every run."""
+    subprocess.run([sys.executable, "-m", "compileall", "-q", str(package)], check=True, capture_output=True)
 
 
 def run(source: Path | None, args: list[str], out: Path) -> dict:
@@ -90,6 +99,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="o3drbf-interleaved-") as tmp:
         folder = Path(tmp)
         other = unpack(a.rev, folder / "other")
+        compiled(ROOT / "o3drbf")  # (this checkout's .pyc, for the same reason)
         args = [str(Path(a.input).resolve()), *a.extra]
         sides = [(a.rev, other), ("this checkout", None)]
         for name, source in sides:  # warm each side's Numba cache, untimed
