@@ -145,6 +145,8 @@ class TwoLevelSettings:
     nested_eps: float = 1e-3
     nested_rtol: float = 0.0
     nested_ratio: float = 24
+    post_coarse: bool = True
+    post_eps: float = 1e-3
 
 
 class TwoLevel:
@@ -196,6 +198,16 @@ class TwoLevel:
     nested_ratio : float
         With ``nested`` steps, nest only when ``N > nested_ratio *
         max_coarse``; below it the coarse level is capped.
+    post_coarse : bool
+        After the local step, correct the coarse centres' weights once more
+        from the residual left at them (one product at ``post_eps``, one more
+        Cholesky solve): coarse, local, coarse.  Only where the coarse level
+        is capped below ``N / coarse_ratio`` (from about 48,000 centres),
+        where it saves more iterations than its product costs
+        (benchmarks/recorded/fast_solver.md, session 22); not with nested
+        steps.
+    post_eps : float
+        Tolerance of that product.
     """
 
     def __init__(self, fast: FastSum, lam, settings: TwoLevelSettings | None = None, **overrides):
@@ -225,6 +237,8 @@ class TwoLevel:
         self.radius = radius
         # Coarse level.
         mc, self.nested = coarse_size(n, st)
+        # The second coarse correction pays where the coarse level is capped below N / coarse_ratio.
+        self.post_eps = float(st.post_eps) if st.post_coarse and mc < n // st.coarse_ratio else None
         if select == "random" and mc < n:
             self.coarse = np.sort(np.random.default_rng(0).choice(n, mc, replace=False))
         else:
@@ -258,6 +272,7 @@ class TwoLevel:
             "coarse": len(self.coarse),
             "coarse_update": "exact" if self.exact else ("dense block" if self.block is not None else "fast sum"),
             "coarse_solve": (f"{self.nested} nested FGMRES steps" if self.nested else "Cholesky"),
+            "post_coarse": self.post_eps is not None and self.factor is not None and not self.exact,
             "setup_seconds": self.setup_seconds,
         }
         if self.inner_level is not None:
@@ -317,6 +332,10 @@ class TwoLevel:
         z[self.coarse] = zc
         r2 = r - self._coarse_to_fine(zc)
         z += _cg(self.near, self.near_diag, r2, self.inner)
+        if self.post_eps is not None and self.factor is not None:
+            c = self.coarse
+            left = r[c] - self.fast.matvec(z, eps=self.post_eps)[c] - self.lam[c] * z[c]
+            z[c] += self._coarse_solve(left)
         return z
 
 
