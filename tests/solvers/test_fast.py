@@ -540,8 +540,8 @@ def test_the_second_coarse_correction_leaves_no_residual_at_the_coarse_centres()
     """With a capped coarse level the preconditioner corrects the coarse weights again after the local
     step, from the residual left at the coarse centres: with exact products (a dense stand-in) that
     residual is then zero (up to the Cholesky solve's rounding), which the one-sided scheme leaves
-    large.  The solve with it reaches the dense solution; a coarse level that is not capped takes no
-    second correction.  (What it saves, fewer iterations at the mesh tolerance from about 30,000
+    large.  The solve with it reaches the dense solution; a coarse level that is not capped, or a
+    product that sums its near field at every call, takes no second correction.  (What it saves, fewer iterations at the mesh tolerance from about 30,000
     centres, is measured by benchmarks/fast_system.py: benchmarks/recorded/fast_solver.md, session 22.)"""
     from o3drbf.solvers.fast.precondition import TwoLevel
 
@@ -558,6 +558,9 @@ def test_the_second_coarse_correction_leaves_no_residual_at_the_coarse_centres()
         left[post] = np.linalg.norm((r - op.matrix @ z - lam * z)[p.coarse]) / np.linalg.norm(r[p.coarse])
     assert left[True] < 1e-8 and left[False] > 1e-2, left
     assert TwoLevel(op, lam, exact_below=0, max_coarse=len(c) // 8).info["post_coarse"] is False  # not capped
+    op.store = False  # a product whose near field is summed at every call: no second correction either
+    assert TwoLevel(op, lam, **pre).info["post_coarse"] is False
+    del op.store
     sol = fast.solve(kernel, c, y, lam, rtol=1e-9, operator=op, max_iterations=300, preconditioner=pre)
     assert sol.info["converged"] and sol.info["preconditioner"]["post_coarse"]
     ref = solve(kernel, c, y, lam, method="dense")

@@ -202,10 +202,12 @@ class TwoLevel:
         After the local step, correct the coarse centres' weights once more
         from the residual left at them (one product at ``post_eps``, one more
         Cholesky solve): coarse, local, coarse.  Only where the coarse level
-        is capped below ``N / coarse_ratio`` (from about 48,000 centres),
-        where it saves more iterations than its product costs
-        (benchmarks/recorded/fast_solver.md, session 22); not with nested
-        steps.
+        is capped below ``N / coarse_ratio`` (from about 48,000 centres) and
+        the product's near field is stored (``fast.store``, when it has
+        one), where it saves more iterations than its product costs; at a
+        million centres, with the near field summed at every product, it
+        cost more (benchmarks/recorded/fast_solver.md, session 22); not
+        with nested steps.
     post_eps : float
         Tolerance of that product.
     """
@@ -237,8 +239,10 @@ class TwoLevel:
         self.radius = radius
         # Coarse level.
         mc, self.nested = coarse_size(n, st)
-        # The second coarse correction pays where the coarse level is capped below N / coarse_ratio.
-        self.post_eps = float(st.post_eps) if st.post_coarse and mc < n // st.coarse_ratio else None
+        # The second coarse correction pays where the coarse level is capped below N / coarse_ratio and
+        # its product is cheap (the near field stored, not summed at every product).
+        self.post_eps = float(st.post_eps) if st.post_coarse and mc < n // st.coarse_ratio and getattr(fast, "store", True) \
+            else None
         if select == "random" and mc < n:
             self.coarse = np.sort(np.random.default_rng(0).choice(n, mc, replace=False))
         else:
