@@ -422,7 +422,11 @@ def radius_sample(centres, count: int = RADIUS_SAMPLE) -> np.ndarray:
     n = len(centres)
     if n <= count:
         return np.arange(n)
-    key = _coordinate_hash(centres)
+    return _smallest(_coordinate_hash(centres), count)
+
+
+def _smallest(key: np.ndarray, count: int) -> np.ndarray:
+    """Indices of the ``count`` smallest keys, in key order."""
     pick = np.argpartition(key, count - 1)[:count]
     return pick[np.argsort(key[pick], kind="stable")]
 
@@ -449,10 +453,10 @@ def neighbour_radius(centres, tree: cKDTree, k: int) -> float:
     centres = np.ascontiguousarray(centres, dtype=float)
     n = len(centres)
     k = int(min(max(k, 8), max(n // 4, 2)))
-    pick = radius_sample(centres)
-    sample = centres[pick]
-    # By the sample (in hash order) and, for the rest, order-free sums of the hashes: a permutation hits.
+    # The sample of radius_sample (its hashes computed once here) and, for the cache key, order-free sums of
+    # the hashes: a permutation hits.
     h = _coordinate_hash(centres) if n > RADIUS_SAMPLE else np.zeros(1, np.uint64)
+    sample = centres[_smallest(h, RADIUS_SAMPLE)] if n > RADIUS_SAMPLE else centres
     with np.errstate(over="ignore"):
         whole = (int(h.sum(dtype=np.uint64)), int(np.bitwise_xor.reduce(h)), int((h * h).sum(dtype=np.uint64)))
     if n <= RADIUS_SAMPLE:
