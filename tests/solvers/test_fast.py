@@ -389,6 +389,35 @@ def test_near_field_summed_on_the_fly_matches_the_stored_matrix_and_dense(proble
         assert np.linalg.norm(got - ref) / np.linalg.norm(ref) < max(eps, 1e-3 if e else 0)
 
 
+@pytest.mark.parametrize("store", [True, False])
+@pytest.mark.parametrize("block", [True, False])
+def test_rows_of_a_product_at_some_centres(problem3k, dense3k, store, block, monkeypatch):
+    """``GridSum.rows``: a product's rows at a subset of the centres, far ones (outside the grid) among them,
+    are the full product's rows to rounding and the dense rows to the tolerance, at the operator's accuracy
+    and at a looser companion's; the far centres are summed as the product sums them (never by a grid
+    enlarged to reach them), with their stored block or without it."""
+    import o3drbf.solvers.fast.grid as grid_module
+
+    monkeypatch.setattr(grid_module, "DIRECT_PAIRS", 0)  # a far target summed by :meth:`at` would enlarge the grid
+    kernel = KERNELS["multiorder-10"]
+    c = np.vstack([problem3k[0], [[4.0, 4.0, 4.0], [-4.0, 3.0, 1.0]]])
+    a = np.vstack([np.column_stack([dense3k("multiorder-10"), kernel_matrix(kernel, problem3k[0], c[-2:])]),
+                   kernel_matrix(kernel, c[-2:], c)])
+    g = fast.GridSum(kernel, c, eps=1e-6, store=store)
+    g.OUTSIDE_BLOCK_BYTES = None if block else 0
+    assert len(g.outside) == 2 and (g._outside_block() is not None) is block
+    subset = np.r_[len(c) - 1, np.random.default_rng(41).choice(len(c) - 2, 400, replace=False), len(c) - 2]
+    w = np.random.default_rng(42).normal(size=len(c))
+    ref = a[subset] @ w
+    for e, tol in ((None, 1e-6), (1e-3, 1e-3)):
+        shape = g._tier(e).mesh.shape
+        got = g.rows(subset, eps=e)(w)
+        assert g._tier(e).mesh.shape == shape
+        np.testing.assert_allclose(got, g.matvec(w, eps=e)[subset], rtol=0, atol=1e-12 * np.abs(ref).max())
+        assert np.linalg.norm(got - ref) / np.linalg.norm(ref) < tol
+        np.testing.assert_allclose(got[[0, -1]], ref[[0, -1]], rtol=1e-12)  # the far ones
+
+
 def test_grid_duplicates_and_targets_outside_the_centres_box():
     rng = np.random.default_rng(17)
     c = np.vstack([rng.uniform(-0.5, 0.5, (400, 3)), np.zeros((2, 3))])
@@ -540,9 +569,9 @@ def test_the_second_coarse_correction_leaves_no_residual_at_the_coarse_centres()
     """With a capped coarse level the preconditioner corrects the coarse weights again after the local
     step, from the residual left at the coarse centres: with exact products (a dense stand-in) that
     residual is then zero (up to the Cholesky solve's rounding), which the one-sided scheme leaves
-    large.  The solve with it reaches the dense solution; a coarse level that is not capped, or a
-    product that sums its near field at every call, takes no second correction.  (What it saves, fewer iterations at the mesh tolerance from about 30,000
-    centres, is measured by benchmarks/fast_system.py: benchmarks/recorded/fast_solver.md, session 22.)"""
+    large.  The solve with it reaches the dense solution; a coarse level that is not capped takes no
+    second correction.  (What it saves, fewer iterations at the mesh tolerance from about 30,000
+    centres, is measured by benchmarks/fast_system.py: benchmarks/recorded/fast_solver.md, sessions 22-23.)"""
     from o3drbf.solvers.fast.precondition import TwoLevel
 
     kernel = MultiOrder(10.0, 0.01)
@@ -558,11 +587,35 @@ def test_the_second_coarse_correction_leaves_no_residual_at_the_coarse_centres()
         left[post] = np.linalg.norm((r - op.matrix @ z - lam * z)[p.coarse]) / np.linalg.norm(r[p.coarse])
     assert left[True] < 1e-8 and left[False] > 1e-2, left
     assert TwoLevel(op, lam, exact_below=0, max_coarse=len(c) // 8).info["post_coarse"] is False  # not capped
-    op.store = False  # a product whose near field is summed at every call: no second correction either
-    assert TwoLevel(op, lam, **pre).info["post_coarse"] is False
-    del op.store
     sol = fast.solve(kernel, c, y, lam, rtol=1e-9, operator=op, max_iterations=300, preconditioner=pre)
     assert sol.info["converged"] and sol.info["preconditioner"]["post_coarse"]
+    ref = solve(kernel, c, y, lam, method="dense")
+    x = np.random.default_rng(4).uniform(-1, 1, (2000, 3))
+    f_ref = kernel_sum(kernel, c, ref.weights, x) + ref.poly[0]
+    f = kernel_sum(kernel, c, sol.weights, x) + sol.poly[0]
+    assert np.abs(f - f_ref).max() < 1e-6 * np.abs(f_ref).max()
+
+
+def test_the_local_step_is_damped_more_where_the_kernel_is_flat_over_the_near_radius():
+    """Between two coarse corrections, a local step damped by 2 over-corrects where the kernel is flat over the
+    near radius (phi(R) / phi(0) near 0.9, as at a million centres): the solve stalls.  Damped by
+    ``post_damping / (1 - phi(R) / phi(0))`` it converges to the dense solution."""
+    from o3drbf.solvers.fast.precondition import TwoLevelSettings
+
+    kernel = MultiOrder(2.0, 0.05)
+    c, y, lam = torus_problem(4000, seed=5)
+    op = DenseSum(kernel, c)
+    pre = {"exact_below": 0, "max_coarse": 100, "cap_floor": 100}
+    with pytest.warns(ConvergenceWarning):
+        stalled = fast.solve(kernel, c, y, lam, rtol=1e-9, operator=op, max_iterations=100,
+                             preconditioner={**pre, "post_damping": 0.0})
+    assert stalled.info["preconditioner"]["damping"] == 2.0 and not stalled.info["converged"]
+    sol = fast.solve(kernel, c, y, lam, rtol=1e-9, operator=op, max_iterations=100, preconditioner=pre)
+    info = sol.info["preconditioner"]
+    flat = float(kernel(np.array([info["near_radius"]]))[0]) / kernel.value_at_zero
+    assert flat > 0.85 and info["post_coarse"]
+    assert info["damping"] == pytest.approx(TwoLevelSettings().post_damping / (1 - flat), rel=1e-12)
+    assert sol.info["converged"] and sol.iterations < 60, sol.iterations
     ref = solve(kernel, c, y, lam, method="dense")
     x = np.random.default_rng(4).uniform(-1, 1, (2000, 3))
     f_ref = kernel_sum(kernel, c, ref.weights, x) + ref.poly[0]

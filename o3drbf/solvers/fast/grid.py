@@ -701,6 +701,44 @@ class GridSum:
         apply.operator = self
         return apply
 
+    def rows(self, subset, eps: float | None = None):
+        """``w -> (Phi w)[subset]``: a product's rows at some of the centres, to relative accuracy ``eps``
+        (default: the operator's; a looser one is served by a looser companion, as in :meth:`matvec`).
+
+        Only those rows are summed: the grid potential of all the weights, gathered, with the near field,
+        at the subset alone (:meth:`at`); the far centres among them as in :meth:`matvec`.  For a few
+        rows this skips the gather and the near field at every centre.
+
+        Parameters
+        ----------
+        subset : (M,) int array
+            Indices of the centres.
+        eps : float, optional
+        """
+        op = self._tier(eps)
+        subset = np.asarray(subset, dtype=np.int64).reshape(-1)
+        if op._core is None:
+            return op.at(op.centres[subset])
+        grid_rows = np.nonzero(op._core_pos[subset] >= 0)[0]
+        far_rows = np.nonzero(op._core_pos[subset] < 0)[0]
+        on_grid = op.at(op.centres[subset[grid_rows]])  # inside the grid: never enlarges it
+        far_pos = np.searchsorted(op.outside, subset[far_rows])
+
+        def apply(w):
+            w = np.asarray(w, dtype=float)
+            out = np.empty(len(subset))
+            out[grid_rows] = on_grid(w)
+            if len(far_rows):
+                block = op._outside_block()
+                if block is None:
+                    out[far_rows] = kernel_sum(op.kernel, op.centres, w, op.centres[subset[far_rows]])
+                else:
+                    to_core, among = block
+                    out[far_rows] = (w[op._core] @ to_core + among @ w[op.outside])[far_pos]
+            return out
+
+        return apply
+
     def _evaluate_on(self, mesh, w, t, gradient):
         """The grid + near sum from the core centres at targets inside ``mesh``, plus the far centres directly."""
         cached = getattr(self, "_ucache", None)

@@ -147,6 +147,7 @@ class TwoLevelSettings:
     nested_ratio: float = 24
     post_coarse: bool = True
     post_eps: float = 1e-3
+    post_damping: float = 0.4
 
 
 class TwoLevel:
@@ -174,7 +175,8 @@ class TwoLevel:
         CG steps on the near-field matrix.
     damping : float
         The near-field diagonal phi(0) - phi(R) is multiplied by this (a
-        damped local step after the coarse correction).
+        damped local step after the coarse correction); with the second
+        coarse correction, by at least ``post_damping / (1 - phi(R) / phi(0))``.
     exact_below : int
         Up to this N the "coarse" level is all centres: an exact Cholesky
         preconditioner (one iteration).
@@ -200,16 +202,21 @@ class TwoLevel:
         max_coarse``; below it the coarse level is capped.
     post_coarse : bool
         After the local step, correct the coarse centres' weights once more
-        from the residual left at them (one product at ``post_eps``, one more
-        Cholesky solve): coarse, local, coarse.  Only where the coarse level
-        is capped below ``N / coarse_ratio`` (from about 48,000 centres) and
-        the product's near field is stored (``fast.store``, when it has
-        one), where it saves more iterations than its product costs; at a
-        million centres, with the near field summed at every product, it
-        cost more (benchmarks/recorded/fast_solver.md, session 22); not
-        with nested steps.
+        from the residual left at them (the product's rows at the coarse
+        centres at ``post_eps``, one more Cholesky solve): coarse, local,
+        coarse.  Only where the coarse level is capped below ``N /
+        coarse_ratio`` (from about 48,000 centres), where it saves more
+        iterations than it costs; not with nested steps.
     post_eps : float
         Tolerance of that product.
+    post_damping : float
+        With the second coarse correction, the local step's damping is at
+        least ``post_damping / (1 - phi(R) / phi(0))``.  The flatter the
+        kernel over the near radius R, the less of it the near field holds,
+        and an undamped local step between two coarse corrections
+        over-corrects: at a million centres (phi(R) / phi(0) = 0.89) the
+        solve stalled near a residual of 1e-4 with the damping of 2
+        (benchmarks/recorded/fast_solver.md, session 23).
     """
 
     def __init__(self, fast: FastSum, lam, settings: TwoLevelSettings | None = None, **overrides):
@@ -220,17 +227,28 @@ class TwoLevel:
         if st.max_coarse > DENSE_MAX:
             raise ValueError(f"max_coarse {st.max_coarse} is above {DENSE_MAX}: the installed OpenBLAS crashes in larger Cholesky "
                              "factorizations; use nested steps for a larger coarse level")
-        neighbours, inner, eps, dense_budget, select, damping = st.neighbours, st.inner, st.eps, st.dense_budget, st.select, st.damping
+        neighbours, inner, eps, dense_budget, select = st.neighbours, st.inner, st.eps, st.dense_budget, st.select
         nested_eps, nested_rtol = st.nested_eps, st.nested_rtol
         kernel, x = fast.kernel, fast.centres
         n = len(x)
         self.fast, self.lam, self.inner, self.eps = fast, np.asarray(lam, float), int(inner), eps
         t0 = time.perf_counter()
+        mc, self.nested = coarse_size(n, st)
+        # The second coarse correction pays where the coarse level is capped below N / coarse_ratio.
+        post = st.post_coarse and not self.nested and mc < n // st.coarse_ratio
+        self.post_eps = float(st.post_eps) if post else None
+        self.damping = float(st.damping)
+
+        def near_diagonal(phir):  # the local step's diagonal, damped
+            if post and fast.phi0 > phir:
+                self.damping = max(self.damping, st.post_damping / (1.0 - phir / fast.phi0))
+            self.diag_base = self.damping * (fast.phi0 - phir)
+            return self.diag_base + self.lam
+
         # Near field: tapered kernel phi(r) - phi(R) on ~k neighbours.
         k = min(neighbours, n - 1)
         if k >= 1:
-            self.near, radius, phir = tapered_near(kernel, x, fast.tree, k, lambda phir: damping * (fast.phi0 - phir) + self.lam)
-            self.diag_base = damping * (fast.phi0 - phir)
+            self.near, radius, phir = tapered_near(kernel, x, fast.tree, k, near_diagonal)
         else:
             radius, self.diag_base = 0.0, fast.phi0
             self.near = sp.diags(self.diag_base + self.lam).tocsr()
@@ -238,11 +256,6 @@ class TwoLevel:
         self.near_diag = np.asarray(diag, dtype=float)
         self.radius = radius
         # Coarse level.
-        mc, self.nested = coarse_size(n, st)
-        # The second coarse correction pays where the coarse level is capped below N / coarse_ratio and
-        # its product is cheap (the near field stored, not summed at every product).
-        self.post_eps = float(st.post_eps) if st.post_coarse and mc < n // st.coarse_ratio and getattr(fast, "store", True) \
-            else None
         if select == "random" and mc < n:
             self.coarse = np.sort(np.random.default_rng(0).choice(n, mc, replace=False))
         else:
@@ -268,6 +281,11 @@ class TwoLevel:
             self.block = kernel_matrix(kernel, x, xc, order="C")
         elif not self.exact:
             self.update = fast.from_subset(self.coarse)
+        self.post_rows = None
+        if self.post_eps is not None and self.factor is not None and not self.exact:
+            rows = getattr(fast, "rows", None)  # a grid sum: only the coarse rows of the product
+            self.post_rows = rows(self.coarse, eps=self.post_eps) if rows is not None \
+                else (lambda z, c=self.coarse, e=self.post_eps: fast.matvec(z, eps=e)[c])
         self.setup_seconds = time.perf_counter() - t0
         self.info = {
             "near_neighbours": k,
@@ -276,7 +294,8 @@ class TwoLevel:
             "coarse": len(self.coarse),
             "coarse_update": "exact" if self.exact else ("dense block" if self.block is not None else "fast sum"),
             "coarse_solve": (f"{self.nested} nested FGMRES steps" if self.nested else "Cholesky"),
-            "post_coarse": self.post_eps is not None and self.factor is not None and not self.exact,
+            "post_coarse": self.post_rows is not None,
+            "damping": self.damping,
             "setup_seconds": self.setup_seconds,
         }
         if self.inner_level is not None:
@@ -336,9 +355,9 @@ class TwoLevel:
         z[self.coarse] = zc
         r2 = r - self._coarse_to_fine(zc)
         z += _cg(self.near, self.near_diag, r2, self.inner)
-        if self.post_eps is not None and self.factor is not None:
+        if self.post_rows is not None:
             c = self.coarse
-            left = r[c] - self.fast.matvec(z, eps=self.post_eps)[c] - self.lam[c] * z[c]
+            left = r[c] - self.post_rows(z) - self.lam[c] * z[c]
             z[c] += self._coarse_solve(left)
         return z
 
