@@ -120,7 +120,6 @@ from o3drbf.solvers.fast.grid import (
     DIRECT_PAIRS,
     GRID_BUDGET,
     GridSum,
-    fast_operator,
     grid_budget,
     grid_bytes,
     long_part,
@@ -128,6 +127,7 @@ from o3drbf.solvers.fast.grid import (
     outside_centres,
     split_design,
 )
+from o3drbf.solvers.fast.operator import fast_operator
 from o3drbf.solvers.fast.memory import check_memory, fast_memory, fitting_fraction, grid_plan, memory_plan
 from o3drbf.solvers.fast.neighbours import (
     HAVE_GRID,

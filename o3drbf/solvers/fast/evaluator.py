@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from o3drbf.rbf.kernels import Kernel
-from o3drbf.solvers.fast.grid import GridSum, fast_operator
+from o3drbf.solvers.fast.grid import GridSum
+from o3drbf.solvers.fast.operator import fast_operator
 from o3drbf.solvers.fast.neighbours import default_neighbours
 from o3drbf.solvers.fast.tolerance import DEFAULT_EPS
 

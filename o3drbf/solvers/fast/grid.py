@@ -1,5 +1,5 @@
 """Grid (particle-mesh) sums for the multi-order kernel: the Ewald-type split, spreading and gathering,
-the FFT mesh, :class:`GridSum`, and :func:`fast_operator` (the product a fast solve takes)."""
+the FFT mesh, and :class:`GridSum`."""
 
 from __future__ import annotations
 
@@ -14,12 +14,10 @@ from scipy.spatial import cKDTree
 from o3drbf.rbf.kernels import Kernel, MultiOrder
 from o3drbf.rbf.sums import kernel_matrix, kernel_sum
 from o3drbf.solvers.base import memory_limit_or_default
-from o3drbf.solvers.fast.fmm import FastSum
-from o3drbf.solvers.fast.neighbours import (HAVE_GRID, LOOP_MATH, CellList, csr_matvec, default_neighbours, restrict_near, neighbour_radius, njit, prange, product_neighbours,
-                                            store_near)
+from o3drbf.solvers.fast.neighbours import (HAVE_GRID, LOOP_MATH, CellList, csr_matvec, default_neighbours, restrict_near, neighbour_radius, njit, prange, store_near)
 from o3drbf.solvers.fast.tolerance import DEFAULT_EPS, clip_eps
 
-__all__ = ["GridSum", "Mesh", "fast_operator", "grid_bytes", "grid_budget", "outside_centres", "split_design",
+__all__ = ["GridSum", "Mesh", "grid_bytes", "grid_budget", "outside_centres", "split_design",
            "near_table", "near_entries", "long_part", "GRID_BUDGET", "DIRECT_PAIRS", "OUTSIDE_BLOCK_SHARE", "OUTSIDE_BLOCK_MIN",
            "outside_block_bytes"]
 
@@ -887,32 +885,3 @@ def outside_centres(centres, tree: cKDTree, radius: float, max_pairs: int | None
     if len(out) * n > cap and len(out) > 1e-3 * n:  # a few (the sphere) are summed directly even at large N
         return np.zeros(0, np.int64)
     return out.astype(np.int64)
-
-
-def fast_operator(kernel: Kernel, centres, eps: float = DEFAULT_EPS, backend: str = "auto", memory_limit: int | None = None,
-                  neighbours: int | None = None):
-    """The product for a fast solve: :class:`GridSum` or :class:`FastSum`.
-
-    ``backend="auto"`` takes the grid for the multi-order kernel when numba is
-    there, ``eps >= 1e-8`` and the grid fits :func:`grid_budget` (it is
-    multi-threaded, fmm3dpy's wheel is not), else the FMM (``"fmm"``).  The grid's near field has
-    ``neighbours``, default :func:`product_neighbours` (``memory_limit``): right for
-    products at the centres; evaluation at many targets wants fewer (:func:`default_neighbours`)."""
-    if neighbours is None:
-        neighbours = product_neighbours(len(centres), memory_limit)
-    if backend not in ("auto", "grid", "fmm"):
-        raise ValueError(f"backend must be 'auto', 'grid' or 'fmm', got {backend!r}")
-    if backend == "grid":
-        return GridSum(kernel, centres, eps=eps, neighbours=neighbours)
-    if backend == "auto" and HAVE_GRID and isinstance(kernel, MultiOrder) and kernel.coefficients is not None \
-            and eps >= 1e-8 and len(centres) >= 64:
-        try:
-            return GridSum(kernel, centres, eps=eps, neighbours=neighbours)
-        except MemoryError as exc:
-            import logging
-
-            logging.getLogger("o3drbf").warning(
-                "fast products: %s; falling back to fmm3dpy (single-threaded wheel: ~%.0f s a product)",
-                exc, 30.0 * len(centres) / 1e5,
-            )
-    return FastSum(kernel, centres, eps=eps)

@@ -15,7 +15,8 @@ from o3drbf.rbf.sums import kernel_matrix
 from o3drbf.solvers.dense import DENSE_MAX
 from o3drbf.solvers.fast.fgmres import fgmres
 from o3drbf.solvers.fast.fmm import FastSum
-from o3drbf.solvers.fast.grid import GridSum, fast_operator
+from o3drbf.solvers.fast.grid import GridSum
+from o3drbf.solvers.fast.operator import fast_operator
 from o3drbf.solvers.fast.neighbours import CellList, csr_matvec, njit
 
 __all__ = ["TwoLevel", "TwoLevelSettings", "coarse_size"]

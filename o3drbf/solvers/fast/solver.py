@@ -14,7 +14,7 @@ from o3drbf.rbf.sums import polynomial_basis
 from o3drbf.solvers.base import ConvergenceWarning, Solution
 from o3drbf.solvers.fast.fgmres import RESTART, fgmres
 from o3drbf.solvers.fast.fmm import FastSum
-from o3drbf.solvers.fast.grid import fast_operator
+from o3drbf.solvers.fast.operator import fast_operator
 from o3drbf.solvers.fast.memory import check_memory
 from o3drbf.solvers.fast.precondition import TwoLevel
 from o3drbf.solvers.fast.tolerance import RELAX_CAP, clip_eps, product_tolerance, relax_scale
