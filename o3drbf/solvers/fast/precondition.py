@@ -235,9 +235,9 @@ class TwoLevel:
         self.fast, self.lam, self.inner, self.eps = fast, np.asarray(lam, float), int(inner), eps
         t0 = time.perf_counter()
         mc, self.nested = coarse_size(n, st)
-        # The second coarse correction pays where the coarse level is capped below N / coarse_ratio.
+        # The second coarse correction pays where the coarse level is capped below N / coarse_ratio
+        # (so never exact, and Cholesky-factored unless nested).
         post = st.post_coarse and not self.nested and mc < n // st.coarse_ratio
-        self.post_eps = float(st.post_eps) if post else None
         self.damping = float(st.damping)
 
         def near_diagonal(phir):  # the local step's diagonal, damped
@@ -283,10 +283,10 @@ class TwoLevel:
         elif not self.exact:
             self.update = fast.from_subset(self.coarse)
         self.post_rows = None
-        if self.post_eps is not None and self.factor is not None and not self.exact:
+        if post:
             rows = getattr(fast, "rows", None)  # a grid sum: only the coarse rows of the product
-            self.post_rows = rows(self.coarse, eps=self.post_eps) if rows is not None \
-                else (lambda z, c=self.coarse, e=self.post_eps: fast.matvec(z, eps=e)[c])
+            self.post_rows = rows(self.coarse, eps=st.post_eps) if rows is not None \
+                else (lambda z, c=self.coarse, e=st.post_eps: fast.matvec(z, eps=e)[c])
         self.setup_seconds = time.perf_counter() - t0
         self.info = {
             "near_neighbours": k,
