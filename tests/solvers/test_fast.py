@@ -334,7 +334,7 @@ def test_grid_looser_products_and_subset(problem3k, dense3k):
     ref = a[:, subset] @ z
     apply = g.from_subset(subset)
     assert np.linalg.norm(apply(z) - ref) / np.linalg.norm(ref) < 1e-7
-    assert np.linalg.norm(apply(z, 1e-2) - ref) / np.linalg.norm(ref) < 1e-3
+    assert np.linalg.norm(apply(z, 1e-2) - ref) / np.linalg.norm(ref) < 1e-2
 
 
 def test_sums_at_fixed_targets_and_a_small_subsets_own_grid(problem3k, dense3k):
@@ -356,10 +356,10 @@ def test_sums_at_fixed_targets_and_a_small_subsets_own_grid(problem3k, dense3k):
     z = np.random.default_rng(34).normal(size=len(subset))
     dense = dense3k("multiorder-10")[:, subset] @ z
     apply = g.from_subset(subset)
-    for e, tol in ((1e-2, 1e-3), (None, 1e-6)):
+    for e, tol in ((1e-2, 1e-2), (None, 1e-6)):
         assert np.linalg.norm(apply(z, e) - dense) / np.linalg.norm(dense) < tol
-    own = apply.sums[1e-3].operator
-    assert own.n == len(subset) and all(a < b for a, b in zip(own.mesh.shape, g._tier(1e-3).mesh.shape))
+    own = apply.sums[1e-2].operator
+    assert own.n == len(subset) and all(a < b for a, b in zip(own.mesh.shape, g._tier(1e-2).mesh.shape))
 
 
 @pytest.mark.parametrize("eps", [1e-3, 1e-7])
@@ -386,7 +386,7 @@ def test_near_field_summed_on_the_fly_matches_the_stored_matrix_and_dense(proble
     for e in (None, 1e-2):
         got, want = fly.from_subset(subset)(z, e), stored.from_subset(subset)(z, e)
         assert np.linalg.norm(got - want) / np.linalg.norm(want) < 1e-13
-        assert np.linalg.norm(got - ref) / np.linalg.norm(ref) < max(eps, 1e-3 if e else 0)
+        assert np.linalg.norm(got - ref) / np.linalg.norm(ref) < max(eps, e or 0)
 
 
 @pytest.mark.parametrize("store", [True, False])
@@ -409,7 +409,7 @@ def test_rows_of_a_product_at_some_centres(problem3k, dense3k, store, block, mon
     subset = np.r_[len(c) - 1, np.random.default_rng(41).choice(len(c) - 2, 400, replace=False), len(c) - 2]
     w = np.random.default_rng(42).normal(size=len(c))
     ref = a[subset] @ w
-    for e, tol in ((None, 1e-6), (1e-3, 1e-3)):
+    for e, tol in ((None, 1e-6), (1e-3, 1e-3), (1e-2, 1e-2)):
         shape = g._tier(e).mesh.shape
         got = g.rows(subset, eps=e)(w)
         assert g._tier(e).mesh.shape == shape

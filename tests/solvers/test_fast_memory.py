@@ -110,6 +110,24 @@ def test_plan_matches_the_arrays_a_grid_allocates():
     assert whole["total"] >= whole["fit"] > plan["grid"] + plan["near"]
 
 
+def test_plan_counts_the_coarse_rows_grid_where_the_second_correction_runs():
+    """With the second coarse correction (a capped coarse level, from about 48,000 centres) the preconditioner
+    sums the product's rows at the coarse centres on a looser companion grid (``post_eps``): the plan counts
+    that grid's kernel transform (within 15 %) there, and no such grid below."""
+    from o3drbf.solvers.fast.precondition import TwoLevelSettings, second_correction
+
+    kernel = MultiOrder(9.92, 0.005)
+    st = TwoLevelSettings()
+    key = f"grid {st.post_eps:g}"
+    small, large = torus_centres(20000), torus_centres(60000)
+    assert not second_correction(len(small), st) and second_correction(len(large), st)
+    assert key not in fast.memory_plan(kernel, small, eps=1e-7, evaluation=False)["parts"]
+    parts = fast.memory_plan(kernel, large, eps=1e-7, evaluation=False)["parts"]
+    op = fast.GridSum(kernel, large, eps=1e-7, store=False)
+    op.rows(np.arange(0, len(large), 100), eps=st.post_eps)
+    assert parts[key] == pytest.approx(op._tier(st.post_eps).mesh.khat.nbytes, rel=0.15)
+
+
 def test_far_centres_block_is_stored_within_its_share_of_the_memory_limit(monkeypatch):
     """The kernel block between the centres and the far ones the grid leaves out (an exterior sphere) is
     stored when it fits in OUTSIDE_BLOCK_SHARE of the limit (the grid's budget), else summed directly at
@@ -136,12 +154,13 @@ def test_far_centres_block_is_stored_within_its_share_of_the_memory_limit(monkey
 
 
 def test_looser_companions_never_take_a_finer_grid():
-    """The 1e-3 and 1e-4 companions (relaxed products) have grids no finer than the product's own:
-    at 300,000 constraints a 300-neighbour companion needed more FFT memory than the product."""
+    """The looser companions (relaxed products at 1e-3 and 1e-4, the preconditioner's sums at 1e-2) have
+    grids no finer than the product's own: at 300,000 constraints a 300-neighbour companion needed more
+    FFT memory than the product."""
     kernel = MultiOrder(9.92, 0.005)
     c = torus_centres(40000)
     op = fast.GridSum(kernel, c, eps=1e-7)
-    for tol in (1e-3, 1e-4):
+    for tol in (1e-2, 1e-3, 1e-4):
         tier = op._tier(tol)
         assert tier is not op and tier.eps == tol
         assert tier.h >= op.h * (1 - 1e-12)

@@ -19,7 +19,7 @@ from o3drbf.solvers.fast.tolerance import DEFAULT_EPS, clip_eps
 
 __all__ = ["GridSum", "Mesh", "grid_bytes", "grid_budget", "outside_centres", "split_design",
            "near_table", "near_entries", "long_part", "GRID_BUDGET", "DIRECT_PAIRS", "OUTSIDE_BLOCK_SHARE", "OUTSIDE_BLOCK_MIN",
-           "outside_block_bytes"]
+           "outside_block_bytes", "COMPANION_TOLERANCES", "served_tolerance"]
 
 
 def _components(kernel):
@@ -217,6 +217,19 @@ SUBSET_NEIGHBOURS = 32
 #: sphere's few dozen centres directly at every product (several times a product) from about half a million centres.
 OUTSIDE_BLOCK_SHARE = 0.05
 OUTSIDE_BLOCK_MIN = 256 * 2**20
+#: Tolerances of a grid sum's looser companions (:meth:`GridSum._tier`), loosest first: 1e-3 and 1e-4 serve a
+#: solve's relaxed products (never looser than ``RELAX_CAP``), 1e-2 the preconditioner's own sums (the coarse
+#: level's update and the coarse rows of its second correction: ``TwoLevelSettings.eps`` and ``post_eps``).
+COMPANION_TOLERANCES = (1e-2, 1e-3, 1e-4)
+
+
+def served_tolerance(eps: float | None, own: float) -> float:
+    """The tolerance a request at ``eps`` to a grid sum at ``own`` is served at: the loosest of
+    ``COMPANION_TOLERANCES`` at least ten times ``own`` and no looser than ``eps``, else ``own``."""
+    for tol in COMPANION_TOLERANCES:
+        if eps is not None and tol <= eps and tol >= 10 * own:
+            return tol
+    return own
 
 
 def outside_block_bytes(limit: int | None = None) -> int:
@@ -519,7 +532,7 @@ class GridSum:
 
     def _tier(self, eps):
         """The loosest operator at least as accurate as ``eps``: this one, or a cached
-        looser companion (tolerance 1e-4 or 1e-3, :meth:`tier_radius`: a grid no finer,
+        looser companion (a tolerance of ``COMPANION_TOLERANCES``, :meth:`tier_radius`: a grid no finer,
         single-precision FFTs, a 9-11 point stencil instead of 13-15, a smaller near part)."""
         tol = self._tolerance_for(eps)
         if tol == self.eps:
@@ -770,12 +783,8 @@ class GridSum:
         return v_out
 
     def _tolerance_for(self, eps) -> float:
-        """The tolerance a request at ``eps`` is served at: a companion's (1e-3 or 1e-4, at least ten times
-        this one's and no looser than ``eps``), else this one's."""
-        for tol in (1e-3, 1e-4):
-            if eps is not None and tol <= eps and tol >= 10 * self.eps:
-                return tol
-        return self.eps
+        """The tolerance a request at ``eps`` is served at (:func:`served_tolerance`)."""
+        return served_tolerance(eps, self.eps)
 
     def from_subset(self, subset):
         """A callable ``(w_sub, eps) -> sum_{j in subset} w_j phi(|c_i - c_j|)`` at every centre.

@@ -11,7 +11,7 @@ from o3drbf.rbf.kernels import MultiOrder
 from o3drbf.solvers.base import MemoryRefusal, memory_limit_or_default
 from o3drbf.solvers.fast.fgmres import RESTART
 from o3drbf.solvers.fast.grid import (SUBSET_NEIGHBOURS, SUBSET_SHARE, Mesh, near_entries, near_table, outside_block_bytes, outside_centres,
-                                      split_design)
+                                      served_tolerance, split_design)
 from o3drbf.solvers.fast.neighbours import (HAVE_GRID, NNZ_BYTES, default_neighbours, neighbour_radius, product_neighbours,
                                             store_near)
 from o3drbf.solvers.fast.tolerance import DEFAULT_EPS, clip_eps, product_tolerance
@@ -122,13 +122,21 @@ def near_choice(plan: dict, store: bool | None = None, limit: int | None = None)
     return out
 
 
-def _twolevel_plan(kernel, centres, tree, lam_count, coarse_update_nnz, options=None, limit=None) -> int:
-    """Bytes of a :class:`TwoLevel` on these centres with its default options (``options`` overrides)."""
+def _settings(options=None):
+    """The :class:`TwoLevelSettings` a :class:`TwoLevel` takes with these ``options`` over its defaults."""
     from dataclasses import replace
 
-    from o3drbf.solvers.fast.precondition import TwoLevelSettings, coarse_size
+    from o3drbf.solvers.fast.precondition import TwoLevelSettings
 
-    st = replace(TwoLevelSettings(), **(options or {}))  # the preconditioner's own defaults
+    return replace(TwoLevelSettings(), **(options or {}))
+
+
+def _twolevel_plan(kernel, centres, tree, lam_count, coarse_update_nnz, eps, options=None, limit=None) -> int:
+    """Bytes of a :class:`TwoLevel` on these centres, for an operator at tolerance ``eps``, with its default
+    options (``options`` overrides)."""
+    from o3drbf.solvers.fast.precondition import coarse_size
+
+    st = _settings(options)
     n = len(centres)
     total = (4 + 4) * n * (st.neighbours + 1) + 64 * n  # the tapered near matrix: a float32 entry and an int32 column each (built in place)
     mc, nested = coarse_size(n, st)
@@ -136,7 +144,8 @@ def _twolevel_plan(kernel, centres, tree, lam_count, coarse_update_nnz, options=
         total += 8 * n * mc
     elif 64 <= mc <= SUBSET_SHARE * n:  # the coarse centres' own grid sum, at every centre (GridSum.from_subset)
         sub = centres[np.sort(np.random.default_rng(2).choice(n, mc, replace=False))]
-        g = grid_plan(kernel, sub, cKDTree(sub), 1e-3, neighbours=SUBSET_NEIGHBOURS, near=False)
+        tol = served_tolerance(st.eps, eps)  # as GridSum.from_subset asks it
+        g = grid_plan(kernel, sub, cKDTree(sub), tol if tol > eps else tol / 10, neighbours=SUBSET_NEIGHBOURS, near=False)
         block = 8 * n * len(g["outside"])  # its far centres' kernel at every centre, one a tolerance (GridSum.at)
         total += g["grid"] + g["work"] + 32 * n + (2 * block if block <= outside_block_bytes(limit) else 0)
     elif mc < n:
@@ -147,9 +156,27 @@ def _twolevel_plan(kernel, centres, tree, lam_count, coarse_update_nnz, options=
     sub = centres[sub_idx]
     sub_tree = cKDTree(sub)
     g = near_choice(grid_plan(kernel, sub, sub_tree, max(st.nested_eps, 1e-8), neighbours=product_neighbours(mc)), limit=limit)
-    inner = _twolevel_plan(kernel, sub, sub_tree, mc, g["near"] / NNZ_BYTES, options, limit)
+    inner = _twolevel_plan(kernel, sub, sub_tree, mc, g["near"] / NNZ_BYTES, max(st.nested_eps, eps), options, limit)
     krylov = 2 * (nested + 2) * mc * 8
     return int(total + g["grid"] + g["near"] + inner + krylov + _PER_CENTRE_BYTES * mc)  # (its work: below the outer's)
+
+
+def _coarse_count(n: int, options=None) -> int:
+    from o3drbf.solvers.fast.precondition import coarse_size
+
+    return coarse_size(n, _settings(options))[0]
+
+
+def _rows_tolerance(n: int, eps: float, options=None) -> float | None:
+    """The tolerance of the coarse rows a :class:`TwoLevel` on ``n`` centres asks of an operator at ``eps``
+    (its second coarse correction), when that is a companion of its own; else None."""
+    from o3drbf.solvers.fast.precondition import second_correction
+
+    st = _settings(options)
+    if not second_correction(n, st):
+        return None
+    tol = served_tolerance(st.post_eps, eps)
+    return tol if tol != eps else None
 
 
 def memory_plan(kernel, centres, rtol: float = 1e-6, eps: float | None = None, restart: int = RESTART, preconditioner: dict | None = None,
@@ -159,7 +186,8 @@ def memory_plan(kernel, centres, rtol: float = 1e-6, eps: float | None = None, r
     It follows the solve as it runs: during FGMRES the products at the
     solve's tolerance and their two looser companions (each a grid and a
     near-field matrix), the two-level preconditioner (tapered near field,
-    coarse Cholesky or the nested level with its own grid), the Krylov
+    coarse Cholesky or the nested level with its own grid, and the grid of
+    its coarse rows at ``post_eps`` with the second correction), the Krylov
     basis; at the end the evaluator's grid joins the products; meshing
     holds the evaluator's grid enlarged to ``box`` and ``extraction_bytes``.
     Kernels or tolerances the grid does not take are estimated by
@@ -220,7 +248,13 @@ def memory_plan(kernel, centres, rtol: float = 1e-6, eps: float | None = None, r
             parts[f"grid {tol:g}"], parts[f"near {tol:g}"] = t["grid"], t["near"]
             work.append(t["work"])
             tier_nnz = t["near"] / NNZ_BYTES if tol == 1e-3 else tier_nnz
-    parts["preconditioner"] = _twolevel_plan(kernel, centres, tree, n, tier_nnz or main["near"] / NNZ_BYTES, preconditioner,
+    rows_tol = _rows_tolerance(n, e, preconditioner)
+    if rows_tol is not None and f"grid {rows_tol:g}" not in parts:  # the coarse rows' companion (GridSum.rows)
+        t = grid_plan(kernel, centres, tree, rows_tol, radius=max(rc300, main["h"] / split_design(1.0, rows_tol / 10)[2]), outside=out)
+        parts[f"grid {rows_tol:g}"] = t["grid"]
+        parts[f"near {rows_tol:g}"] = int(t["near"] * _coarse_count(n, preconditioner) / n)  # at the coarse centres only
+        work.append(t["work"])
+    parts["preconditioner"] = _twolevel_plan(kernel, centres, tree, n, tier_nnz or main["near"] / NNZ_BYTES, e, preconditioner,
                                              limit)
     parts["krylov"] = int(2 * (min(restart, KRYLOV_PLANNED) + 1) * (n + 4) * 8 + 3 * n * 4 * 8)
     products = sum(v for k, v in parts.items() if k.startswith(("grid", "near")))

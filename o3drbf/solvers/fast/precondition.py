@@ -19,7 +19,7 @@ from o3drbf.solvers.fast.grid import GridSum
 from o3drbf.solvers.fast.operator import fast_operator
 from o3drbf.solvers.fast.neighbours import CellList, csr_matvec, njit
 
-__all__ = ["TwoLevel", "TwoLevelSettings", "coarse_size"]
+__all__ = ["TwoLevel", "TwoLevelSettings", "coarse_size", "second_correction"]
 
 
 def _uniform_subset(points: np.ndarray, count: int) -> np.ndarray:
@@ -127,6 +127,14 @@ def coarse_size(n: int, settings: "TwoLevelSettings") -> tuple[int, int]:
     return min(want, cap, n), 0
 
 
+def second_correction(n: int, settings: "TwoLevelSettings") -> bool:
+    """Whether a :class:`TwoLevel` on ``n`` centres with these settings takes the second coarse correction:
+    where the coarse level is capped below ``n / coarse_ratio`` (so never exact, and Cholesky-factored
+    unless nested), there it saves more iterations than it costs."""
+    mc, nested = coarse_size(n, settings)
+    return bool(settings.post_coarse and not nested and mc < n // settings.coarse_ratio)
+
+
 @dataclass(frozen=True)
 class TwoLevelSettings:
     """The settings of :class:`TwoLevel` (each described there)."""
@@ -137,7 +145,7 @@ class TwoLevelSettings:
     cap_ratio: int = 28
     cap_floor: int = 6000
     inner: int = 10
-    eps: float = 1e-2
+    eps: float = 1e-3
     dense_budget: int = 256 * 2**20
     select: str = "uniform"
     exact_below: int = 3000
@@ -147,7 +155,7 @@ class TwoLevelSettings:
     nested_rtol: float = 0.0
     nested_ratio: float = 24
     post_coarse: bool = True
-    post_eps: float = 1e-3
+    post_eps: float = 1e-2
     post_damping: float = 0.4
 
 
@@ -209,7 +217,8 @@ class TwoLevel:
         coarse_ratio`` (from about 48,000 centres), where it saves more
         iterations than it costs; not with nested steps.
     post_eps : float
-        Tolerance of that product.
+        Tolerance of that product (its rows at the coarse centres only,
+        :meth:`~o3drbf.solvers.fast.grid.GridSum.rows`).
     post_damping : float
         With the second coarse correction, the local step's damping is at
         least ``post_damping / (1 - phi(R) / phi(0))``.  The flatter the
@@ -235,9 +244,7 @@ class TwoLevel:
         self.fast, self.lam, self.inner, self.eps = fast, np.asarray(lam, float), int(inner), eps
         t0 = time.perf_counter()
         mc, self.nested = coarse_size(n, st)
-        # The second coarse correction pays where the coarse level is capped below N / coarse_ratio
-        # (so never exact, and Cholesky-factored unless nested).
-        post = st.post_coarse and not self.nested and mc < n // st.coarse_ratio
+        post = second_correction(n, st)
         self.damping = float(st.damping)
 
         def near_diagonal(phir):  # the local step's diagonal, damped
