@@ -218,8 +218,8 @@ SUBSET_NEIGHBOURS = 32
 OUTSIDE_BLOCK_SHARE = 0.05
 OUTSIDE_BLOCK_MIN = 256 * 2**20
 #: Tolerances of a grid sum's looser companions (:meth:`GridSum._tier`), loosest first: 1e-3 and 1e-4 serve a
-#: solve's relaxed products (never looser than ``RELAX_CAP``), 1e-2 the preconditioner's own sums (the coarse
-#: level's update and the coarse rows of its second correction: ``TwoLevelSettings.eps`` and ``post_eps``).
+#: solve's relaxed products (never looser than ``RELAX_CAP``), 1e-2 the coarse rows of the preconditioner's
+#: second correction (``TwoLevelSettings.post_eps``).
 COMPANION_TOLERANCES = (1e-2, 1e-3, 1e-4)
 
 
