@@ -161,22 +161,16 @@ def _twolevel_plan(kernel, centres, tree, lam_count, coarse_update_nnz, eps, opt
     return int(total + g["grid"] + g["near"] + inner + krylov + _PER_CENTRE_BYTES * mc)  # (its work: below the outer's)
 
 
-def _coarse_count(n: int, options=None) -> int:
-    from o3drbf.solvers.fast.precondition import coarse_size
-
-    return coarse_size(n, _settings(options))[0]
-
-
-def _rows_tolerance(n: int, eps: float, options=None) -> float | None:
-    """The tolerance of the coarse rows a :class:`TwoLevel` on ``n`` centres asks of an operator at ``eps``
-    (its second coarse correction), when that is a companion of its own; else None."""
-    from o3drbf.solvers.fast.precondition import second_correction
+def _coarse_rows(n: int, eps: float, options=None) -> tuple[float, int] | None:
+    """(tolerance, count) of the coarse rows a :class:`TwoLevel` on ``n`` centres asks of an operator at
+    ``eps`` (its second coarse correction), when that tolerance is a companion's of its own; else None."""
+    from o3drbf.solvers.fast.precondition import coarse_size, second_correction
 
     st = _settings(options)
     if not second_correction(n, st):
         return None
     tol = served_tolerance(st.post_eps, eps)
-    return tol if tol != eps else None
+    return (tol, coarse_size(n, st)[0]) if tol != eps else None
 
 
 def memory_plan(kernel, centres, rtol: float = 1e-6, eps: float | None = None, restart: int = RESTART, preconditioner: dict | None = None,
@@ -240,19 +234,22 @@ def memory_plan(kernel, centres, rtol: float = 1e-6, eps: float | None = None, r
         parts["far centres"] = far
     work = [main["work"]]
     rc300 = neighbour_radius(centres, tree, min(300, max(n // 300, 64)))
+
+    def companion(tol):  # a looser companion's grid (GridSum._tier, with its tier_radius)
+        return grid_plan(kernel, centres, tree, tol, radius=max(rc300, main["h"] / split_design(1.0, tol / 10)[2]), outside=out)
+
     tier_nnz = 0
     for tol in (1e-3, 1e-4):
         if tol >= 10 * e:
-            t = near_choice(grid_plan(kernel, centres, tree, tol, radius=max(rc300, main["h"] / split_design(1.0, tol / 10)[2]),
-                                      outside=out), store=main["store"])
+            t = near_choice(companion(tol), store=main["store"])
             parts[f"grid {tol:g}"], parts[f"near {tol:g}"] = t["grid"], t["near"]
             work.append(t["work"])
             tier_nnz = t["near"] / NNZ_BYTES if tol == 1e-3 else tier_nnz
-    rows_tol = _rows_tolerance(n, e, preconditioner)
-    if rows_tol is not None and f"grid {rows_tol:g}" not in parts:  # the coarse rows' companion (GridSum.rows)
-        t = grid_plan(kernel, centres, tree, rows_tol, radius=max(rc300, main["h"] / split_design(1.0, rows_tol / 10)[2]), outside=out)
-        parts[f"grid {rows_tol:g}"] = t["grid"]
-        parts[f"near {rows_tol:g}"] = int(t["near"] * _coarse_count(n, preconditioner) / n)  # at the coarse centres only
+    rows = _coarse_rows(n, e, preconditioner)
+    if rows is not None and f"grid {rows[0]:g}" not in parts:  # the coarse rows' companion (GridSum.rows)
+        t = companion(rows[0])
+        parts[f"grid {rows[0]:g}"] = t["grid"]
+        parts[f"near {rows[0]:g}"] = int(t["near"] * rows[1] / n)  # at the coarse centres only
         work.append(t["work"])
     parts["preconditioner"] = _twolevel_plan(kernel, centres, tree, n, tier_nnz or main["near"] / NNZ_BYTES, e, preconditioner,
                                              limit)
