@@ -9,7 +9,7 @@ numba = pytest.importorskip("numba")
 from o3drbf.rbf.kernels import MultiOrder  # noqa: E402
 from o3drbf.rbf.sums import kernel_matrix  # noqa: E402
 from o3drbf.solvers import fast  # noqa: E402
-from o3drbf.solvers.fast.grid import _gather, _spread  # noqa: E402
+from o3drbf.solvers.fast.fftgrid import _gather, _spread  # noqa: E402
 from o3drbf.solvers.fast.neighbours import csr_matvec  # noqa: E402
 
 
@@ -207,3 +207,59 @@ def test_kernel_transform_by_mirrored_views_is_the_full_transform(span):
         want = blk * full[:, j0:j1]
         m._times_khat(blk, j0, j1)
         assert np.array_equal(blk, want), (j0, j1)
+
+
+def potential_reference(mesh, pts, w, ktable):
+    """The grid potential by its definition: the spread weights convolved (aperiodic, node by node) with the
+    grid kernel ``ktable(squared node distance) h^3``, times h^3."""
+    grid = np.zeros(mesh.shape)
+    _spread(pts, w, mesh.origin, mesh.h, mesh.s, mesh.half, grid)
+    idx = np.indices(mesh.shape).reshape(3, -1).T
+    d2 = ((idx[:, None, :] - idx[None, :, :]) ** 2).sum(axis=2)
+    return (ktable(d2) * mesh.h**3 @ grid.reshape(-1)).reshape(mesh.shape) * mesh.h**3
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_potential_is_the_direct_convolution_in_and_out_of_reused_work(dtype):
+    """The potential equals the node-by-node convolution, with new work arrays and with a solve's reused ones;
+    inside :func:`reused_work` the work arrays are one buffer (shared from call to call, a new result not
+    overwritten by the next call, a scratch result in the buffer), freed when the block ends."""
+    import gc
+    import weakref
+
+    from o3drbf.solvers.fast.fftgrid import Mesh, reused_work, work_arrays
+
+    def ktable(n2):
+        return np.exp(-np.asarray(n2, float) / 9.0)
+
+    rng = np.random.default_rng(1)
+    h, s, half = 0.1, 0.12, 2
+    mesh = Mesh(np.zeros(3), np.array([0.5, 0.4, 0.3]), h, s, half, ktable, dtype)
+    lo, hi = mesh.origin + (half + 1) * h, mesh.origin + (np.array(mesh.shape) - half - 2) * h
+    pts = rng.uniform(lo, hi, (40, 3))
+    w1, w2 = rng.normal(size=40), rng.normal(size=40)
+    ref1, ref2 = potential_reference(mesh, pts, w1, ktable), potential_reference(mesh, pts, w2, ktable)
+    tol = (1e-12 if dtype == np.float64 else 2e-6) * np.abs(ref1).max()
+    assert np.abs(mesh.potential(pts, w1) - ref1).max() < tol
+    with reused_work():
+        a, b = work_arrays((3, 4), np.float64, (5,), np.complex128)
+        c, d = work_arrays((3, 4), np.float64, (5,), np.complex128)
+        assert a.base is c.base and not np.shares_memory(a, b)
+        del a, b, c, d
+        u1 = mesh.potential(pts, w1)
+        u2 = mesh.potential(pts, w2, scratch=True)  # (the buffer grown to the mesh's work arrays)
+        assert np.abs(u1 - ref1).max() < tol and np.abs(u2 - ref2).max() < tol
+        e, z = work_arrays((3, 4), np.float64, (5,), np.complex128)
+        assert np.shares_memory(e.base, u2)  # the scratch result: in the work buffer
+        buffer = weakref.ref(e.base)
+        del e, z
+        with reused_work():  # nested (a robust refit inside a fit): the same buffer
+            f, _ = work_arrays((3, 4), np.float64, (5,), np.complex128)
+            assert f.base is buffer()
+            del f, _
+        assert buffer() is not None
+    del u2
+    gc.collect()
+    assert buffer() is None
+    x, y = work_arrays((3, 4), np.float64, (5,), np.complex128)
+    assert x.base is None and y.base is None  # outside: new arrays

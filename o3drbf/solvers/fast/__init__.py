@@ -4,8 +4,9 @@ Four pieces, each usable on its own:
 
 - :class:`GridSum` (:mod:`~o3drbf.solvers.fast.grid`) -- the default product
   for the multi-order kernel: an Ewald-type Gaussian split, far part by FFT
-  on a grid (particle-mesh), near part as a sparse matrix, with looser
-  companions for relaxed products (see the class notes);
+  on a grid (particle-mesh; the grid itself, :class:`Mesh`, in
+  :mod:`~o3drbf.solvers.fast.fftgrid`), near part as a sparse matrix, with
+  looser companions for relaxed products (see the class notes);
 - :class:`FastSum` (:mod:`~o3drbf.solvers.fast.fmm`) -- ``sum_j w_j
   phi(|x - c_j|)`` at the centres (the matrix-vector product of the fit) or
   at arbitrary targets, with gradients, in O(N log N) time and O(N) memory,

@@ -1,23 +1,22 @@
-"""Grid (particle-mesh) sums for the multi-order kernel: the Ewald-type split, spreading and gathering,
-the FFT mesh, and :class:`GridSum`."""
+"""Grid (particle-mesh) sums for the multi-order kernel: the Ewald-type split, its near part, and
+:class:`GridSum` (the FFT grid itself: :mod:`o3drbf.solvers.fast.fftgrid`)."""
 
 from __future__ import annotations
 
 import math
-import os
 import time
 
 import numpy as np
-import scipy.fft as _sfft
 from scipy.spatial import cKDTree
 
 from o3drbf.rbf.kernels import Kernel, MultiOrder
 from o3drbf.rbf.sums import kernel_matrix, kernel_sum
 from o3drbf.solvers.base import memory_limit_or_default
-from o3drbf.solvers.fast.neighbours import (HAVE_GRID, LOOP_MATH, CellList, csr_matvec, default_neighbours, restrict_near, neighbour_radius, njit, prange, store_near)
+from o3drbf.solvers.fast.fftgrid import Mesh
+from o3drbf.solvers.fast.neighbours import HAVE_GRID, CellList, csr_matvec, default_neighbours, restrict_near, neighbour_radius, store_near
 from o3drbf.solvers.fast.tolerance import DEFAULT_EPS, clip_eps
 
-__all__ = ["GridSum", "Mesh", "grid_bytes", "grid_budget", "outside_centres", "split_design",
+__all__ = ["GridSum", "grid_bytes", "grid_budget", "outside_centres", "split_design",
            "near_table", "near_entries", "long_part", "GRID_BUDGET", "DIRECT_PAIRS", "OUTSIDE_BLOCK_SHARE", "OUTSIDE_BLOCK_MIN",
            "outside_block_bytes", "COMPANION_TOLERANCES", "served_tolerance"]
 
@@ -49,108 +48,6 @@ def long_part(kernel, r, sigma, extra=0.0):
         damp = np.exp(-(kappa * extra) ** 2 / 2)
         out += coef * damp * _psi_long(r, kappa + 0j, sigma)
     return out.real
-
-
-@njit(cache=True, parallel=True, fastmath=LOOP_MATH)
-def _spread(pts, w, origin, h, s, half, grid):
-    """Spread ``w`` onto ``grid`` with the Gaussian stencil, in parallel over slabs along x.
-
-    Slabs of ``W = 2 half + 1`` nodes: a point's stencil starts in its slab and reaches at most into
-    the next one, so the even slabs are spread at the same time, then the odd ones (no two threads
-    add to one node).  Each node gets its sums in the same order whatever the thread count (LOOP_MATH
-    reorders only within a point's stencil).  The grid
-    is addressed flat with unsigned offsets (no negative-index wrap to test), so that a stencil row
-    is one vector operation."""
-    W = 2 * half + 1
-    c = 1.0 / ((2 * math.pi) ** 1.5 * s ** 3)
-    inv = 1.0 / (2 * s * s)
-    n = pts.shape[0]
-    ny, nz = grid.shape[1], grid.shape[2]
-    flat = grid.reshape(-1)
-    nslab = grid.shape[0] // W + 1
-    slab = np.empty(n, np.int64)
-    count = np.zeros(nslab + 1, np.int64)
-    for p in range(n):
-        ix = int(math.floor((pts[p, 0] - origin[0]) / h + 0.5)) - half
-        slab[p] = min(max(ix // W, 0), nslab - 1)
-        count[slab[p] + 1] += 1
-    start = np.cumsum(count)
-    fill = start[:-1].copy()
-    order = np.empty(n, np.int64)
-    for p in range(n):
-        order[fill[slab[p]]] = p
-        fill[slab[p]] += 1
-    for phase in range(2):
-        for t in prange((nslab - phase + 1) // 2):
-            sl = 2 * t + phase
-            wx = np.empty(W); wy = np.empty(W); wz = np.empty(W)
-            for idx in range(start[sl], start[sl + 1]):
-                p = order[idx]
-                fx = (pts[p, 0] - origin[0]) / h; fy = (pts[p, 1] - origin[1]) / h; fz = (pts[p, 2] - origin[2]) / h
-                ix = int(math.floor(fx + 0.5)) - half; iy = int(math.floor(fy + 0.5)) - half; iz = int(math.floor(fz + 0.5)) - half
-                for a in range(W):
-                    d = (ix + a - fx) * h; wx[a] = math.exp(-d * d * inv)
-                    d = (iy + a - fy) * h; wy[a] = math.exp(-d * d * inv)
-                    d = (iz + a - fz) * h; wz[a] = math.exp(-d * d * inv)
-                wp = w[p] * c
-                for a in range(W):
-                    va = wp * wx[a]
-                    for b in range(W):
-                        vb = va * wy[b]
-                        base = np.uint64(((ix + a) * ny + iy + b) * nz + iz)
-                        for q in range(W):
-                            flat[base + np.uint64(q)] += vb * wz[q]
-
-
-@njit(cache=True, parallel=True, fastmath=LOOP_MATH)
-def _gather(pts, origin, h, s, half, u, out, grad, want):
-    """The Gaussian stencil's weighted sum of ``u`` at each point into ``out`` (and, with ``want``, its
-    gradient into ``grad``); ``u`` addressed flat with unsigned offsets, as in :func:`_spread`."""
-    W = 2 * half + 1
-    c = 1.0 / ((2 * math.pi) ** 1.5 * s ** 3)
-    inv = 1.0 / (2 * s * s)
-    ny, nz = u.shape[1], u.shape[2]
-    flat = u.reshape(-1)
-    for p in prange(pts.shape[0]):
-        wx = np.empty(W); wy = np.empty(W); wz = np.empty(W)
-        dx = np.empty(W); dy = np.empty(W); dz = np.empty(W)
-        fx = (pts[p, 0] - origin[0]) / h; fy = (pts[p, 1] - origin[1]) / h; fz = (pts[p, 2] - origin[2]) / h
-        ix = int(math.floor(fx + 0.5)) - half; iy = int(math.floor(fy + 0.5)) - half; iz = int(math.floor(fz + 0.5)) - half
-        for a in range(W):
-            d = (fx - ix - a) * h; wx[a] = math.exp(-d * d * inv); dx[a] = -d / (s * s) * wx[a]
-            d = (fy - iy - a) * h; wy[a] = math.exp(-d * d * inv); dy[a] = -d / (s * s) * wy[a]
-            d = (fz - iz - a) * h; wz[a] = math.exp(-d * d * inv); dz[a] = -d / (s * s) * wz[a]
-        acc = 0.0; g0 = 0.0; g1 = 0.0; g2 = 0.0
-        if want:
-            for a in range(W):
-                for b in range(W):
-                    base = np.uint64(((ix + a) * ny + iy + b) * nz + iz)
-                    row = 0.0; rowd = 0.0
-                    for q in range(W):
-                        v = flat[base + np.uint64(q)]
-                        row += v * wz[q]
-                        rowd += v * dz[q]
-                    acc += wx[a] * wy[b] * row
-                    g0 += dx[a] * wy[b] * row
-                    g1 += wx[a] * dy[b] * row
-                    g2 += wx[a] * wy[b] * rowd
-            grad[p, 0] = c * g0; grad[p, 1] = c * g1; grad[p, 2] = c * g2
-        else:
-            for a in range(W):
-                for b in range(W):
-                    base = np.uint64(((ix + a) * ny + iy + b) * nz + iz)
-                    row = 0.0
-                    for q in range(W):
-                        row += flat[base + np.uint64(q)] * wz[q]
-                    acc += wx[a] * wy[b] * row
-        out[p] = c * acc
-
-
-def _fft_workers() -> int:
-    try:
-        return max(1, min(int(os.environ.get("OMP_NUM_THREADS") or os.cpu_count() or 1), os.cpu_count() or 1))
-    except ValueError:
-        return 1
 
 
 #: Bytes of FFT arrays a grid may take when memory is not the question (reference size of the
@@ -242,123 +139,6 @@ def grid_bytes(lo, hi, h: float, half: int) -> int:
     """Bytes the grid backend's FFT arrays take over the box ``[lo, hi]`` ((3,) each) at spacing ``h``
     with a spreading half-width of ``half`` cells (what a grid's budget, :func:`grid_budget`, is compared with)."""
     return Mesh.nbytes(lo, hi, h, half)
-
-
-class Mesh:
-    """A grid of spacing h over a box, with the FFT of the grid kernel K (zero-padded: aperiodic).
-
-    The convolution is done axis by axis (z, y, x) so that the zero-padded
-    array of the aperiodic convolution never exists whole: the grid is
-    padded along one axis at a time, the last axis in slabs, and the
-    output cropped back axis by axis; K is even along every axis, so its
-    transform is real and even and one octant of it is kept."""
-
-    #: Bytes of work arrays a slab of the last transform may take (small, so that a slab's padding,
-    #: transforms and product stay in the cores' caches).
-    SLAB_BYTES = 4 * 2**20
-
-    def __init__(self, lo, hi, h, s, half, ktable, dtype=np.float64):
-        self.h, self.s, self.half, self.dtype = h, s, half, dtype
-        pad = (half + 2) * h
-        self.origin = np.asarray(lo, float) - pad
-        self.shape = tuple(int(math.ceil((hi[i] - lo[i] + 2 * pad) / h)) + 1 for i in range(3))
-        self.fshape = tuple(_sfft.next_fast_len(2 * m - 1, real=True) for m in self.shape)
-        fx, fy, fz = self.fshape
-        half_len = [p // 2 + 1 for p in self.fshape]
-        iy = np.minimum(np.arange(fy), fy - np.arange(fy)).astype(np.int64)
-        iz = np.minimum(np.arange(fz), fz - np.arange(fz)).astype(np.int64)
-        n2yz = iy[:, None] ** 2 + iz[None, :] ** 2
-        vals = ktable(np.arange((fx // 2) ** 2 + int(n2yz.max()) + 1)) * h**3  # K at h * sqrt(n2)
-        # One x-slab of K at a time: its (real, even) transform along z and y, first octant kept.
-        part = np.empty(half_len, dtype=np.float64)
-        for i in range(half_len[0]):
-            t = _sfft.rfft(vals[n2yz + i * i], axis=1, workers=_fft_workers()).real
-            part[i] = _sfft.rfft(t, axis=0, workers=_fft_workers()).real
-        del n2yz, vals
-        # Along x: the even sequence of the slabs (K[i] = K[fx - i]), in column blocks.
-        mirror = np.minimum(np.arange(fx), fx - np.arange(fx))
-        khat = np.empty(half_len, dtype=dtype)
-        step = max(1, int(self.SLAB_BYTES // (16 * fx * half_len[2])))
-        for j in range(0, half_len[1], step):
-            col = part[mirror, j : j + step]
-            khat[:, j : j + step] = _sfft.rfft(col, axis=0, workers=_fft_workers()).real
-        del part
-        self.khat = khat
-        self._mx = np.minimum(np.arange(fx), fx - np.arange(fx))
-        self._my = np.minimum(np.arange(fy), fy - np.arange(fy))
-
-    @staticmethod
-    def nbytes(lo, hi, h, half, single: bool = False, part: str = "all") -> int:
-        """Bytes of a grid's kernel transform plus the work arrays of one potential (``single``: float32 FFTs).
-
-        ``part``: "all", "kept" (one octant of the real kernel transform, kept while the grid lives:
-        1 byte a zero-padded node, 0.5 in single precision) or "work" (the grid padded along z
-        and y and its transform, freed after one potential: 7 bytes a zero-padded node, 3.5 in
-        single precision)."""
-        pad = (half + 2) * h
-        shape = [math.ceil((hi[i] - lo[i] + 2 * pad) / h) + 1 for i in range(3)]
-        kept, work = (0.5, 3.5) if single else (1.0, 7.0)
-        per = {"all": kept + work, "kept": kept, "work": work}[part]
-        return int(per * np.prod([2.0 * m for m in shape]))
-
-    def potential(self, pts, w):
-        """The far-field potential on the (unpadded) grid of the weights ``w`` at ``pts``."""
-        mx, my, mz = self.shape
-        fx, fy, fz = self.fshape
-        workers = _fft_workers()
-        grid = np.zeros((mx, my, fz), dtype=self.dtype)  # zero-padded along z from the start (no padded copy)
-        _spread(pts, w, self.origin, self.h, self.s, self.half, grid)
-        a = _sfft.rfft(grid, axis=2, workers=workers)
-        del grid
-        b = _sfft.fft(a, n=fy, axis=1, workers=workers, overwrite_x=True)
-        del a
-        # Along x, slab by slab of y: pad, transform, multiply by K's transform, back, crop.
-        step = max(1, int(self.SLAB_BYTES // (b.itemsize * fx * b.shape[2])))
-        for j in range(0, fy, step):
-            blk = _sfft.fft(b[:, j : j + step], n=fx, axis=0, workers=workers)
-            self._times_khat(blk, j, min(j + step, fy))
-            b[:, j : j + step] = _sfft.ifft(blk, axis=0, workers=workers, overwrite_x=True)[:mx]
-            del blk
-        c = np.ascontiguousarray(_sfft.ifft(b, axis=1, workers=workers, overwrite_x=True)[:, :my])
-        del b
-        u = _sfft.irfft(c, n=fz, axis=2, workers=workers)
-        del c
-        out = np.ascontiguousarray(u[:, :, :mz], dtype=float)
-        del u
-        out *= self.h**3
-        return out
-
-    def _times_khat(self, blk, j0, j1):
-        """``blk *= K's transform`` over columns ``j0 <= y < j1`` of the whole x range, from the kept octant
-        (K[x] = K[fx - x], K[y] = K[fy - y]): by views, the mirrored halves read backwards."""
-        fx, fy = self.fshape[0], self.fshape[1]
-        hx = self.khat.shape[0]
-        if j1 - 1 <= fy - (j1 - 1):  # every column in the first half
-            ky = slice(j0, j1)
-        elif j0 >= fy - j0:  # every column mirrored: y -> fy - y
-            ky = slice(fy - j0, fy - j1, -1)
-        else:  # (the one block across the middle)
-            blk *= self.khat[np.ix_(self._mx, self._my[j0:j1])]
-            return
-        blk[:hx] *= self.khat[:, ky]
-        blk[hx:] *= self.khat[fx - hx : 0 : -1, ky]
-
-    def gather(self, u, pts, gradient):
-        out = np.empty(len(pts))
-        grad = np.empty((len(pts), 3)) if gradient else np.empty((1, 3))
-        _gather(pts, self.origin, self.h, self.s, self.half, u, out, grad, gradient)
-        return (out, grad) if gradient else out
-
-    def covers(self, pts):
-        lo = self.origin + (self.half + 1) * self.h
-        hi = self.origin + (np.array(self.shape) - self.half - 2) * self.h
-        return bool((pts.min(axis=0) >= lo).all() and (pts.max(axis=0) <= hi).all())
-
-    def inside(self, pts):
-        """(M,) bool: the points whose stencil lies on this grid."""
-        lo = self.origin + (self.half + 1) * self.h
-        hi = self.origin + (np.array(self.shape) - self.half - 2) * self.h
-        return ((pts >= lo) & (pts <= hi)).all(axis=1)
 
 
 class GridSum:
@@ -561,7 +341,7 @@ class GridSum:
             return op.matvec(w)
         p = self._perm
         wc = w if self._core is None else w[self._core]
-        u = self.mesh.potential(self._sorted, np.ascontiguousarray(wc[p]))
+        u = self.mesh.potential(self._sorted, np.ascontiguousarray(wc[p]), scratch=True)
         outc = np.empty(len(self._cc))
         outc[p] = self.mesh.gather(u, self._sorted, False)
         self._add_near(wc, outc)
@@ -695,7 +475,7 @@ class GridSum:
         def apply(w):
             w = np.asarray(w, dtype=float)
             wc = w if self._core is None else w[self._core]
-            u = mesh.potential(self._sorted, np.ascontiguousarray(wc[self._perm]))
+            u = mesh.potential(self._sorted, np.ascontiguousarray(wc[self._perm]), scratch=True)
             vals = mesh.gather(u, ts, False)
             del u
             self.cells.add_sum(ts, wc, self.tab, self.dtab, self.dr, vals, None)
@@ -827,7 +607,7 @@ class GridSum:
             wc = w if cmask is None else w[cmask]
             outc = np.empty(len(op._cc))
             if len(csub):
-                u = op.mesh.potential(pts, np.ascontiguousarray(wc[pos]))
+                u = op.mesh.potential(pts, np.ascontiguousarray(wc[pos]), scratch=True)
                 outc[op._perm] = op.mesh.gather(u, op._sorted, False)
                 if op.store:
                     csr_matvec(cols, wc, outc)

@@ -9,8 +9,9 @@ from scipy.spatial import cKDTree
 
 from o3drbf.rbf.kernels import MultiOrder
 from o3drbf.solvers.base import MemoryRefusal, memory_limit_or_default
+from o3drbf.solvers.fast.fftgrid import Mesh
 from o3drbf.solvers.fast.fgmres import RESTART
-from o3drbf.solvers.fast.grid import (SUBSET_NEIGHBOURS, SUBSET_SHARE, Mesh, near_entries, near_table, outside_block_bytes, outside_centres,
+from o3drbf.solvers.fast.grid import (SUBSET_NEIGHBOURS, SUBSET_SHARE, near_entries, near_table, outside_block_bytes, outside_centres,
                                       served_tolerance, split_design)
 from o3drbf.solvers.fast.neighbours import (HAVE_GRID, NNZ_BYTES, default_neighbours, neighbour_radius, product_neighbours,
                                             store_near)

@@ -12,6 +12,7 @@ from o3drbf.progress import progress_bar
 from o3drbf.rbf.kernels import Gaussian, Kernel, MultiOrder
 from o3drbf.rbf.sums import polynomial_basis
 from o3drbf.solvers.base import ConvergenceWarning, Solution
+from o3drbf.solvers.fast.fftgrid import reused_work
 from o3drbf.solvers.fast.fgmres import RESTART, fgmres
 from o3drbf.solvers.fast.fmm import FastSum
 from o3drbf.solvers.fast.operator import fast_operator
@@ -36,6 +37,7 @@ class SolveSettings:
     backend: str = "auto"
 
 
+@reused_work()  # the grids' potentials share one set of work arrays from one product to the next
 def solve(kernel: Kernel, centres, y, lam, settings: SolveSettings | None = None, *, progress: bool = False, operator: FastSum | None = None,
           x0=None, preconditioner_object: TwoLevel | None = None, **overrides) -> Solution:
     """Solve ``[Phi + diag(lam), Q; Q^T, 0] [w; p] = [y; 0]`` with fast products.
