@@ -177,23 +177,27 @@ class Mesh:
         self.fshape = tuple(_sfft.next_fast_len(2 * m - 1, real=True) for m in self.shape)
         fx, fy, fz = self.fshape
         half_len = [p // 2 + 1 for p in self.fshape]
-        iy = np.minimum(np.arange(fy), fy - np.arange(fy)).astype(np.int64)
+        workers = fft_workers()
         iz = np.minimum(np.arange(fz), fz - np.arange(fz)).astype(np.int64)
-        n2yz = iy[:, None] ** 2 + iz[None, :] ** 2
+        n2yz = np.arange(half_len[1], dtype=np.int64)[:, None] ** 2 + iz[None, :] ** 2  # y >= 0 only: K[y] = K[fy - y]
         vals = ktable(np.arange((fx // 2) ** 2 + int(n2yz.max()) + 1)) * h**3  # K at h * sqrt(n2)
-        # One x-slab of K at a time: its (real, even) transform along z and y, first octant kept.
+        # A batch of x-slabs of K at a time: its (real, even) transform along z (each distinct row once), then
+        # along y (the rows mirrored), first octant kept.
         part = np.empty(half_len, dtype=np.float64)
-        for i in range(half_len[0]):
-            t = _sfft.rfft(vals[n2yz + i * i], axis=1, workers=fft_workers()).real
-            part[i] = _sfft.rfft(t, axis=0, workers=fft_workers()).real
-        del n2yz, vals
+        my = np.minimum(np.arange(fy), fy - np.arange(fy))
+        sq = np.arange(half_len[0], dtype=np.int64) ** 2
+        batch = max(1, int(4 * self.SLAB_BYTES // (16 * fy * half_len[2])))
+        for i in range(0, half_len[0], batch):
+            zt = _sfft.rfft(vals[n2yz[None] + sq[i : i + batch, None, None]], axis=2, workers=workers).real
+            part[i : i + batch] = _sfft.rfft(zt[:, my], axis=1, workers=workers).real
+        del n2yz, vals, zt
         # Along x: the even sequence of the slabs (K[i] = K[fx - i]), in column blocks.
         mirror = np.minimum(np.arange(fx), fx - np.arange(fx))
         khat = np.empty(half_len, dtype=dtype)
         step = max(1, int(self.SLAB_BYTES // (16 * fx * half_len[2])))
         for j in range(0, half_len[1], step):
             col = part[mirror, j : j + step]
-            khat[:, j : j + step] = _sfft.rfft(col, axis=0, workers=fft_workers()).real
+            khat[:, j : j + step] = _sfft.rfft(col, axis=0, workers=workers).real
         del part
         self.khat = khat
         self._mx = np.minimum(np.arange(fx), fx - np.arange(fx))
