@@ -263,3 +263,21 @@ def test_potential_is_the_direct_convolution_in_and_out_of_reused_work(dtype):
     assert buffer() is None
     x, y = work_arrays((3, 4), np.float64, (5,), np.complex128)
     assert x.base is None and y.base is None  # outside: new arrays
+
+
+def test_potential_by_scipy_fft_public_functions_is_the_same(monkeypatch):
+    """Where scipy.fft's pocketfft module is not found, its public functions give the same potential."""
+    from o3drbf.solvers.fast import fftgrid
+
+    def ktable(n2):
+        return np.exp(-np.asarray(n2, float) / 9.0)
+
+    rng = np.random.default_rng(2)
+    mesh = fftgrid.Mesh(np.zeros(3), np.array([0.5, 0.4, 0.3]), 0.1, 0.12, 2, ktable, np.float64)
+    lo, hi = mesh.origin + 3 * 0.1, mesh.origin + (np.array(mesh.shape) - 4) * 0.1
+    pts, w = rng.uniform(lo, hi, (40, 3)), rng.normal(size=40)
+    fast_path = mesh.potential(pts, w)
+    monkeypatch.setattr(fftgrid, "_pfft", fftgrid.PublicTransforms)
+    public = mesh.potential(pts, w)
+    assert np.abs(public - fast_path).max() < 1e-12 * np.abs(fast_path).max()
+    assert np.abs(public - potential_reference(mesh, pts, w, ktable)).max() < 1e-12 * np.abs(fast_path).max()

@@ -15,13 +15,39 @@ from contextlib import contextmanager
 
 import numpy as np
 import scipy.fft as _sfft
-from scipy.fft._pocketfft import pypocketfft as _pfft  # the transforms of scipy.fft, with an output array
 
 from o3drbf.solvers.fast.neighbours import LOOP_MATH, njit, prange
 
-__all__ = ["Mesh", "fft_workers", "reused_work", "work_arrays"]
+__all__ = ["Mesh", "PublicTransforms", "fft_workers", "reused_work", "work_arrays"]
 
 _WORK = threading.local()
+
+
+class PublicTransforms:
+    """The three transforms :meth:`Mesh.potential` takes from scipy.fft's pocketfft module, by scipy.fft's
+    public functions (each result copied into ``out``): the stand-in where that module is not found.
+    Forward transforms unnormalized, inverse ones by 1/n, as :meth:`Mesh.potential` asks."""
+
+    @staticmethod
+    def r2c(a, axes, forward, inorm, out, nthreads):
+        out[...] = _sfft.rfft(a, axis=axes[0], workers=nthreads)
+        return out
+
+    @staticmethod
+    def c2c(a, axes, forward, inorm, out, nthreads):
+        out[...] = (_sfft.fft if forward else _sfft.ifft)(a, axis=axes[0], workers=nthreads)
+        return out
+
+    @staticmethod
+    def c2r(a, axes, lastsize, forward, inorm, out, nthreads):
+        out[...] = _sfft.irfft(a, n=lastsize, axis=axes[0], workers=nthreads)
+        return out
+
+
+try:  # scipy.fft's own transforms, which take an output array (in place); not public API, hence the stand-in
+    from scipy.fft._pocketfft import pypocketfft as _pfft
+except ImportError:  # pragma: no cover (a scipy without it)
+    _pfft = PublicTransforms
 
 
 @contextmanager
