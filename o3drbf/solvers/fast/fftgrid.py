@@ -272,8 +272,11 @@ class Mesh:
             b[:, j : j + step] = blk[:mx]
         _pfft.c2c(b, (1,), False, 2, b, workers)
         _pfft.c2r(b[:, :my], (2,), fz, False, 2, grid, workers)
-        # (in scratch, the result takes the complex array's memory: at least twice its size, free now)
-        out = np.ndarray((mx, my, mz), float, b) if scratch else np.empty((mx, my, mz))
+        if scratch:  # the result in the complex array's memory (at least twice its size, free now)
+            out = np.ndarray((mx, my, mz), float, b)
+        else:  # a new result, the complex array given up first (freed unless it is the reused buffer)
+            del b, buf, blk
+            out = np.empty((mx, my, mz))
         np.multiply(grid[:, :, :mz], self.h**3, out=out)
         return out
 
