@@ -2,9 +2,9 @@
 kernel's transform, the far-field potential, and the work arrays a solve's potentials reuse.
 
 A potential's transforms take about six bytes a zero-padded node; fresh arrays of that size at every
-product cost their pages' first touch (on a virtual machine that returns freed memory, about as
-long as the transforms), so within :func:`reused_work` (a fast solve) one set per thread is kept
-and reused: the memory one potential takes anyway, held from one product to the next."""
+product cost their pages' first touch every time (benchmarks/recorded/fast_solver.md, session 25),
+so within :func:`reused_work` (a fast solve) one set per thread is kept and reused: the memory one
+potential takes anyway, held from one product to the next."""
 
 from __future__ import annotations
 
@@ -204,30 +204,29 @@ class Mesh:
         fx, fy, fz = self.fshape
         half_len = [p // 2 + 1 for p in self.fshape]
         workers = fft_workers()
+        # Each index's distance to the nearest end along x and y (K is even: K[i] = K[f - i]).
+        self._mx = np.minimum(np.arange(fx), fx - np.arange(fx))
+        self._my = np.minimum(np.arange(fy), fy - np.arange(fy))
         iz = np.minimum(np.arange(fz), fz - np.arange(fz)).astype(np.int64)
         n2yz = np.arange(half_len[1], dtype=np.int64)[:, None] ** 2 + iz[None, :] ** 2  # y >= 0 only: K[y] = K[fy - y]
         vals = ktable(np.arange((fx // 2) ** 2 + int(n2yz.max()) + 1)) * h**3  # K at h * sqrt(n2)
         # A batch of x-slabs of K at a time: its (real, even) transform along z (each distinct row once), then
         # along y (the rows mirrored), first octant kept.
         part = np.empty(half_len, dtype=np.float64)
-        my = np.minimum(np.arange(fy), fy - np.arange(fy))
         sq = np.arange(half_len[0], dtype=np.int64) ** 2
         batch = max(1, int(4 * self.SLAB_BYTES // (16 * fy * half_len[2])))
         for i in range(0, half_len[0], batch):
             zt = _sfft.rfft(vals[n2yz[None] + sq[i : i + batch, None, None]], axis=2, workers=workers).real
-            part[i : i + batch] = _sfft.rfft(zt[:, my], axis=1, workers=workers).real
+            part[i : i + batch] = _sfft.rfft(zt[:, self._my], axis=1, workers=workers).real
         del n2yz, vals, zt
-        # Along x: the even sequence of the slabs (K[i] = K[fx - i]), in column blocks.
-        mirror = np.minimum(np.arange(fx), fx - np.arange(fx))
+        # Along x: the even sequence of the slabs, in column blocks.
         khat = np.empty(half_len, dtype=dtype)
         step = max(1, int(self.SLAB_BYTES // (16 * fx * half_len[2])))
         for j in range(0, half_len[1], step):
-            col = part[mirror, j : j + step]
+            col = part[self._mx, j : j + step]
             khat[:, j : j + step] = _sfft.rfft(col, axis=0, workers=workers).real
         del part
         self.khat = khat
-        self._mx = np.minimum(np.arange(fx), fx - np.arange(fx))
-        self._my = np.minimum(np.arange(fy), fy - np.arange(fy))
 
     @staticmethod
     def nbytes(lo, hi, h, half, single: bool = False, part: str = "all") -> int:
@@ -235,8 +234,8 @@ class Mesh:
 
         ``part``: "all", "kept" (one octant of the real kernel transform, kept while the grid lives:
         1 byte a zero-padded node, 0.5 in single precision) or "work" (the grid padded along z
-        and y and its transform, freed after one potential: 7 bytes a zero-padded node, 3.5 in
-        single precision)."""
+        and y and its transform, freed after one potential or, inside :func:`reused_work`, reused by
+        the next: 7 bytes a zero-padded node, 3.5 in single precision)."""
         pad = (half + 2) * h
         shape = [math.ceil((hi[i] - lo[i] + 2 * pad) / h) + 1 for i in range(3)]
         kept, work = (0.5, 3.5) if single else (1.0, 7.0)
