@@ -141,3 +141,15 @@ def test_small_components_at_the_size_limit_and_chains_to_the_surface():
     sizes = np.cumsum([5000, 8, 9, 10, 11, 6, 6])
     assert got[sizes[0]:sizes[2]].all() and not got[sizes[2]:sizes[4]].any()
     assert not got[:sizes[0]].any() and not got[sizes[4]:sizes[5]].any() and got[sizes[5]:].all()
+
+
+def test_isolated_points_fit_the_planes_chunk_by_chunk_as_all_at_once(monkeypatch):
+    """Planes fitted a chunk of points at a time (the last chunk partial), outliers planted in later chunks:
+    the same mask as the first written rule, which fits every point's plane at once."""
+    from o3drbf.prep import outliers
+
+    pts, _ = stacked_tori(4000, noise=0.01, frac=0.03, seed=2)
+    monkeypatch.setattr(outliers, "PLANE_CHUNK", 997)
+    got = isolated_points(pts)
+    np.testing.assert_array_equal(got, _isolated_reference(pts))
+    assert got[-300:].sum() > 100  # the uniform outliers, in the last chunks, are found
