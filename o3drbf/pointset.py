@@ -158,7 +158,7 @@ class PointSet:
     def spacing(self) -> float:
         """Mean nearest-neighbour distance (data units; computed once)."""
         if "spacing" not in self._cache:
-            d, _ = self.kdtree.query(self.points, k=2)
+            d, _ = self.kdtree.query(self.points, k=2, workers=-1)
             self._cache["spacing"] = float(d[:, 1].mean())
         return self._cache["spacing"]
 

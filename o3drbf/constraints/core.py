@@ -149,7 +149,7 @@ def exterior_from_normals(
     idx = poisson_disc(pts, count=count, seed=seed + 1)
     cand = pts[idx] + offset * nrm[idx]
     ref = pts if reference is None else as_points(reference, name="reference")
-    d, _ = cKDTree(ref).query(cand)
+    d, _ = cKDTree(ref).query(cand, workers=-1)
     return cand[d >= 0.5 * offset]
 
 

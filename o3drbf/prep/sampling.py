@@ -40,17 +40,20 @@ def mean_spacing(points, sample: int | None = None, tree: cKDTree | None = None,
     return float(d[:, 1].mean())
 
 
-def _greedy(points: np.ndarray, order: np.ndarray, radius: float, tree: cKDTree | None = None) -> np.ndarray:
+def _greedy(points: np.ndarray, order: np.ndarray, radius: float, trees: list | None = None) -> np.ndarray:
     """Dart throwing in a fixed order: accept a point unless an accepted one is
     within ``radius``; each acceptance marks its neighbours as taken (compiled,
     :func:`o3drbf.prep.darts.greedy_darts`; a KD-tree loop for a grid too
-    fine to index)."""
+    fine to index, its tree kept in ``trees`` for the next call on the same points)."""
     from o3drbf.prep.darts import greedy_darts
 
     accepted = greedy_darts(points, order, radius)
     if accepted is not None:
         return accepted
-    tree = cKDTree(points) if tree is None else tree
+    trees = [] if trees is None else trees
+    if not trees:
+        trees.append(cKDTree(points))
+    tree = trees[0]
     taken = np.zeros(len(points), dtype=bool)
     accepted = []
     for idx in order.tolist():
@@ -113,11 +116,11 @@ def poisson_disc(points, count: int | None = None, radius: float | None = None, 
     r = 1.2 * mean_spacing(sub)
     cand = _candidates(pts, r / 6.0, rng)
     cp = pts[cand]
-    tree = cKDTree(cp)
     order = rng.permutation(len(cand))
     best = None
+    trees = []  # the candidates' KD-tree, built only if the compiled darts cannot index them, then kept
     for _ in range(20):
-        sel = _greedy(cp, order, r, tree)
+        sel = _greedy(cp, order, r, trees)
         err = len(sel) - count
         if best is None or abs(err) < abs(len(best) - count):
             best = sel

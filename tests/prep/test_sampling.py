@@ -129,3 +129,26 @@ def test_a_grid_too_fine_to_index_falls_back_to_the_kd_tree_loop():
     order = rng.permutation(len(pts))
     assert greedy_darts(pts, order, 1e-4) is None
     np.testing.assert_array_equal(sampling._greedy(pts, order, 1e-4), _kd_tree_darts(pts, order, 1e-4))
+
+
+@pytest.mark.parametrize("fallback", [False, True])
+def test_poisson_disc_builds_the_candidates_kd_tree_only_for_the_fallback_and_once(monkeypatch, fallback):
+    """The compiled darts need no KD-tree of the candidates; the KD-tree loop (a grid too fine to index)
+    builds one for the whole radius search, not one a radius."""
+    from o3drbf.prep import sampling
+
+    built = []
+
+    class Counting(sampling.cKDTree):
+        def __init__(self, data, *args, **kwargs):
+            built.append(len(data))
+            super().__init__(data, *args, **kwargs)
+
+    monkeypatch.setattr(sampling, "cKDTree", Counting)
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(0, 1e-3, (2000, 3))
+    if fallback:
+        pts = np.vstack([pts, [[1e4, 1e4, 0.0]]])  # a far point: 1e14 rows of cells
+    kept = sampling.poisson_disc(pts, count=200, seed=4)
+    assert abs(len(kept) - 200) <= 10 + fallback
+    assert len(built) == 1 + fallback  # the spacing of a random subset's, and the candidates' for the fallback
