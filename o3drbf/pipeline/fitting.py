@@ -270,10 +270,12 @@ def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = F
     if options.robust:
         from o3drbf.constraints.robust import robust_reweight
 
-        if resolution is not None and surface.evaluator is None:
+        if resolution is not None:
             from o3drbf.extract import mesh_evaluator
 
-            mesh_evaluator(surface)  # the grid marching cubes will use, built now: the first residuals come from it
+            # The grid marching cubes will use (a fast fit's own evaluation grid, or a new one), built now: the
+            # first residuals, f and grad f, come from it (not from a grid ten times as fine for gradients alone).
+            mesh_evaluator(surface)
 
         # The residual scale never falls below half a constraint spacing, so
         # clean data are not reweighted (no refit when no residual reaches

@@ -184,3 +184,27 @@ def test_the_robust_pass_and_marching_cubes_share_one_grid_sum(monkeypatch):
     assert r.report.solver == "dense" and r.report.robust is not None and r.report.robust["rounds"] == 0
     assert built == [o3drbf.extract.MESH_EPS] and r.surface.meshing is None
     assert r.mesh.is_watertight()
+
+
+def test_a_fit_with_a_fast_evaluator_takes_its_robust_residuals_from_the_meshing_grid(monkeypatch):
+    """A fast-solved fit large enough for an evaluator of its own (here made small): the robust pass's
+    residuals, f and grad f, come from the grid marching cubes use, not from a second grid of ten times
+    the evaluator's accuracy built for gradients alone (the evaluator's, on its centres, tree and outside)."""
+    from o3drbf.pipeline import fitting
+    from o3drbf.solvers.fast import evaluator, grid
+
+    built = []
+    real = grid.GridSum.__init__
+
+    def counting(self, *args, **kwargs):
+        built.append("gradients" if {"outside", "neighbours"} <= set(kwargs) else "other")
+        real(self, *args, **kwargs)
+
+    monkeypatch.setattr(grid.GridSum, "__init__", counting)
+    monkeypatch.setattr(fitting, "FAST_EVALUATION_MIN", 1000)
+    p, n = Torus(0.6, 0.25).sample(6000, noise=0.002, seed=4)
+    r = o3drbf.reconstruct(p, n, surface_count=1500, resolution=48, solver="fast")
+    assert r.report.solver == "fast" and isinstance(r.surface.evaluator.fast_sum, evaluator.GridSum)
+    assert r.report.robust is not None and r.report.robust["rounds"] == 0
+    assert "other" in built and "gradients" not in built and r.surface.meshing is None
+    assert r.mesh.is_watertight()
