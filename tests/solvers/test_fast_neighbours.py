@@ -136,3 +136,35 @@ def test_neighbour_radius_is_the_sampled_median_and_is_found_once_per_centres_an
     swapped[0], swapped[1] = pts[1] + 1e-3, pts[0]  # one point moved (the sum of hashes changes)
     neighbour_radius(swapped, Counting(swapped), 20)
     assert Counting.calls == calls + 2
+
+
+def test_nearest_distance_is_the_brute_force_one_and_is_found_once_per_centres_in_their_order():
+    from scipy.spatial import cKDTree
+
+    from o3drbf.solvers.fast.neighbours import nearest_distance
+
+    pts = np.random.default_rng(8).uniform(-1, 1, (2500, 3))
+
+    class Counting(cKDTree):
+        calls = 0
+
+        def query(self, *args, **kwargs):
+            Counting.calls += 1
+            return super().query(*args, **kwargs)
+
+    d = cdist(pts, pts)
+    np.fill_diagonal(d, np.inf)
+    tree = Counting(pts)
+    got = nearest_distance(pts, tree)
+    np.testing.assert_allclose(got, d.min(axis=1), rtol=1e-12)
+    assert Counting.calls == 1
+    assert nearest_distance(pts.copy(), tree) is got and Counting.calls == 1  # the same centres: kept
+    perm = np.random.default_rng(9).permutation(len(pts))
+    np.testing.assert_allclose(nearest_distance(pts[perm], Counting(pts[perm])), got[perm], rtol=1e-12)  # another order: its own
+    assert Counting.calls == 2
+    moved = pts.copy()
+    moved[0, 0] += 1e-9
+    nearest_distance(moved, Counting(moved))
+    assert Counting.calls == 3  # any change to the centres: found again
+    with pytest.raises(ValueError):
+        got[0] = 0.0  # the kept answer is read-only

@@ -13,7 +13,8 @@ from o3drbf.rbf.kernels import Kernel, MultiOrder
 from o3drbf.rbf.sums import kernel_matrix, kernel_sum
 from o3drbf.solvers.base import memory_limit_or_default
 from o3drbf.solvers.fast.fftgrid import Mesh
-from o3drbf.solvers.fast.neighbours import HAVE_GRID, CellList, csr_matvec, default_neighbours, restrict_near, neighbour_radius, store_near
+from o3drbf.solvers.fast.neighbours import HAVE_GRID, CellList, csr_matvec, default_neighbours, nearest_distance, neighbour_radius, \
+    restrict_near, store_near
 from o3drbf.solvers.fast.tolerance import DEFAULT_EPS, clip_eps
 
 __all__ = ["GridSum", "grid_bytes", "grid_budget", "outside_centres", "split_design",
@@ -665,8 +666,7 @@ def outside_centres(centres, tree: cKDTree, radius: float, max_pairs: int | None
     cap = DIRECT_PAIRS if max_pairs is None else int(max_pairs)
     if n < 3:
         return np.zeros(0, np.int64)
-    d, _ = tree.query(centres, k=2, workers=-1)
-    busy = d[:, 1] <= radius
+    busy = nearest_distance(centres, tree) <= radius
     if busy.sum() < 2:
         return np.zeros(0, np.int64)
     lo, hi = centres[busy].min(axis=0), centres[busy].max(axis=0)
