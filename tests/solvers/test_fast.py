@@ -621,3 +621,25 @@ def test_the_local_step_is_damped_more_where_the_kernel_is_flat_over_the_near_ra
     f_ref = kernel_sum(kernel, c, ref.weights, x) + ref.poly[0]
     f = kernel_sum(kernel, c, sol.weights, x) + sol.poly[0]
     assert np.abs(f - f_ref).max() < 1e-6 * np.abs(f_ref).max()
+
+
+def test_the_coarse_level_factors_the_full_coarse_matrix_from_its_lower_triangle():
+    """The coarse matrix is evaluated on its lower triangle only (all a lower Cholesky factorization reads):
+    the factor equals that of the full matrix Phi_CC + Lambda_C, at the start and after new smoothing."""
+    import scipy.linalg as sla
+
+    from o3drbf.rbf.sums import kernel_matrix
+    from o3drbf.solvers.fast.precondition import TwoLevel
+
+    kernel = MultiOrder(10.0, 0.01)
+    c, y, lam = torus_problem(4000, seed=7)
+    p = TwoLevel(DenseSum(kernel, c), lam, exact_below=0, max_coarse=300, cap_floor=300)
+    lam2 = lam.copy()
+    lam2[p.coarse[:5]] *= 10.0
+    for step in (0, 1):
+        if step:
+            p.set_smoothing(lam2)
+        xc = c[p.coarse]
+        full = kernel_matrix(kernel, xc) + np.diag((lam, lam2)[step][p.coarse])
+        want = np.tril(sla.cho_factor(full, lower=True)[0])
+        np.testing.assert_allclose(np.tril(p.factor[0]), want, rtol=0, atol=1e-12 * np.abs(want).max())

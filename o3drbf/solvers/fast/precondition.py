@@ -278,7 +278,7 @@ class TwoLevel:
             self._sub, self._sub_lam, self._sub_eps = sub, self.lam[self.coarse], nested_eps
             self._sub_rtol = float(nested_rtol)
         else:
-            acc = kernel_matrix(kernel, xc)
+            acc = kernel_matrix(kernel, xc, lower=True)  # the lower triangle: all the factorization reads
             acc[np.diag_indices(len(xc))] += self.lam[self.coarse]
             self.factor = sla.cho_factor(acc, lower=True, overwrite_a=True, check_finite=False)
             del acc
@@ -329,7 +329,7 @@ class TwoLevel:
             self.inner_level.set_smoothing(self._sub_lam)
         else:
             self.factor = None  # (its memory freed before the new one)
-            acc = kernel_matrix(self.fast.kernel, self.fast.centres[self.coarse])
+            acc = kernel_matrix(self.fast.kernel, self.fast.centres[self.coarse], lower=True)
             acc[np.diag_indices(len(self.coarse))] += lam[self.coarse]
             self.factor = sla.cho_factor(acc, lower=True, overwrite_a=True, check_finite=False)
 
