@@ -209,7 +209,9 @@ class Mesh:
         self._my = np.minimum(np.arange(fy), fy - np.arange(fy))
         iz = np.minimum(np.arange(fz), fz - np.arange(fz)).astype(np.int64)
         n2yz = np.arange(half_len[1], dtype=np.int64)[:, None] ** 2 + iz[None, :] ** 2  # y >= 0 only: K[y] = K[fy - y]
-        vals = ktable(np.arange((fx // 2) ** 2 + int(n2yz.max()) + 1)) * h**3  # K at h * sqrt(n2)
+        # K at h * sqrt(n2), times the node volume h^3 twice: the convolution's quadrature over the spread
+        # weights and the gather's over the potential (so a potential needs no scaling of its own)
+        vals = ktable(np.arange((fx // 2) ** 2 + int(n2yz.max()) + 1)) * h**6
         # A batch of x-slabs of K at a time: its (real, even) transform along z (each distinct row once), then
         # along y (the rows mirrored), first octant kept.
         part = np.empty(half_len, dtype=np.float64)
@@ -247,8 +249,9 @@ class Mesh:
 
         The grid and its transform live in the work arrays of :func:`work_arrays` (this thread's
         reused ones inside :func:`reused_work`), transformed in place axis by axis.  The result is
-        a new array, or with ``scratch`` may be a view of those work arrays, valid until this
-        thread's next potential (for a caller that gathers from it at once)."""
+        a new float64 array of the grid's shape, or with ``scratch`` the real work array itself, valid
+        until this thread's next potential (for a caller that gathers from it at once): in the grid's
+        precision and padded along z (its first ``shape[2]`` planes are the grid)."""
         mx, my, mz = self.shape
         fx, fy, fz = self.fshape
         workers = fft_workers()
@@ -271,12 +274,11 @@ class Mesh:
             b[:, j : j + step] = blk[:mx]
         _pfft.c2c(b, (1,), False, 2, b, workers)
         _pfft.c2r(b[:, :my], (2,), fz, False, 2, grid, workers)
-        if scratch:  # the result in the complex array's memory (at least twice its size, free now)
-            out = np.ndarray((mx, my, mz), float, b)
-        else:  # a new result, the complex array given up first (freed unless it is the reused buffer)
-            del b, buf, blk
-            out = np.empty((mx, my, mz))
-        np.multiply(grid[:, :, :mz], self.h**3, out=out)
+        if scratch:  # the transform's own output, padded along z (gathers read it in place, in its precision)
+            return grid
+        del b, buf, blk  # a new result, the complex array given up first (freed unless it is the reused buffer)
+        out = np.empty((mx, my, mz))
+        out[...] = grid[:, :, :mz]
         return out
 
     def _times_khat(self, blk, j0, j1):
