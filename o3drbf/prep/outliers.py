@@ -348,8 +348,8 @@ def isolated_points(
 
 
 #: Points whose neighbour planes :func:`isolated_points` fits at once: the (chunk, k, 3) work arrays stay
-#: small and in cache, where arrays of every point's neighbours (at a million points, 0.6 GB each) took
-#: twice as long and their memory.
+#: small and in cache instead of holding every point's neighbours at once
+#: (benchmarks/recorded/fast_solver.md, session 26).
 PLANE_CHUNK = 16384
 
 

@@ -474,7 +474,7 @@ def neighbour_radius(centres, tree: cKDTree, k: int) -> float:
 
 #: Nearest-centre distances :func:`nearest_distance` found, by the centres' bytes (in their order): a fit asks for
 #: the same centres' several times (its memory plans, its products' grids, its evaluator's), each a query of every
-#: centre (0.6-0.7 s at a million).
+#: centre.
 _NEAREST: dict = {}
 _NEAREST_KEPT = 4
 
