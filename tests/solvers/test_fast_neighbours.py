@@ -98,12 +98,9 @@ def test_spatial_order_keeps_neighbours_close_in_memory():
     assert spatial_order(np.zeros((0, 3))).size == 0 and spatial_order(np.zeros((3, 3))).tolist() == [0, 1, 2]
 
 
-def test_neighbour_radius_is_the_sampled_median_and_is_found_once_per_centres_and_k():
+def counting_tree_class():
+    """A cKDTree subclass counting the queries of all its trees (``calls``)."""
     from scipy.spatial import cKDTree
-
-    from o3drbf.solvers.fast.neighbours import RADIUS_SAMPLE, neighbour_radius, radius_sample
-
-    pts = np.random.default_rng(7).uniform(-1, 1, (3000, 3))
 
     class Counting(cKDTree):
         calls = 0
@@ -112,6 +109,14 @@ def test_neighbour_radius_is_the_sampled_median_and_is_found_once_per_centres_an
             Counting.calls += 1
             return super().query(*args, **kwargs)
 
+    return Counting
+
+
+def test_neighbour_radius_is_the_sampled_median_and_is_found_once_per_centres_and_k():
+    from o3drbf.solvers.fast.neighbours import RADIUS_SAMPLE, neighbour_radius, radius_sample
+
+    pts = np.random.default_rng(7).uniform(-1, 1, (3000, 3))
+    Counting = counting_tree_class()
     tree = Counting(pts)
     pick = radius_sample(pts)
     assert len(pick) == RADIUS_SAMPLE == len(np.unique(pick))
@@ -139,19 +144,10 @@ def test_neighbour_radius_is_the_sampled_median_and_is_found_once_per_centres_an
 
 
 def test_nearest_distance_is_the_brute_force_one_and_is_found_once_per_centres_in_their_order():
-    from scipy.spatial import cKDTree
-
     from o3drbf.solvers.fast.neighbours import nearest_distance
 
     pts = np.random.default_rng(8).uniform(-1, 1, (2500, 3))
-
-    class Counting(cKDTree):
-        calls = 0
-
-        def query(self, *args, **kwargs):
-            Counting.calls += 1
-            return super().query(*args, **kwargs)
-
+    Counting = counting_tree_class()
     d = cdist(pts, pts)
     np.fill_diagonal(d, np.inf)
     tree = Counting(pts)
