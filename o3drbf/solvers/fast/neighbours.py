@@ -11,8 +11,8 @@ from scipy.spatial import cKDTree
 from o3drbf.prep.sampling import spatial_order  # (the solvers' order of the centres; defined with the points)
 from o3drbf.solvers.base import memory_limit_or_default
 
-__all__ = ["HAVE_GRID", "nearest_distance", "NNZ_BYTES", "PRODUCT_NEIGHBOURS_MAX", "NEAR_STORE_BYTES", "CELLS_PER_POINT", "store_near", "pairs_chunks", "mean_neighbours", "sparse_matrix",
-           "CellList", "default_neighbours", "product_neighbours", "RADIUS_SAMPLE", "radius_sample", "neighbour_radius", "csr_matvec", "restrict_near", "spatial_order"]
+__all__ = ["HAVE_GRID", "NNZ_BYTES", "PRODUCT_NEIGHBOURS_MAX", "NEAR_STORE_BYTES", "CELLS_PER_POINT", "store_near", "pairs_chunks", "mean_neighbours", "sparse_matrix",
+           "CellList", "default_neighbours", "product_neighbours", "RADIUS_SAMPLE", "radius_sample", "neighbour_radius", "nearest_distance", "csr_matvec", "restrict_near", "spatial_order"]
 
 #: Bytes per stored sparse entry (float64 value, int32 column index).
 NNZ_BYTES = 12
@@ -498,4 +498,3 @@ def nearest_distance(centres, tree: cKDTree) -> np.ndarray:
             _NEAREST.pop(next(iter(_NEAREST)))
         _NEAREST[key] = d
     return d
-
