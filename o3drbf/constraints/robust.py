@@ -126,6 +126,12 @@ class RobustReport:
 def geometric_residuals(surface, points) -> np.ndarray:
     """``|f| / |grad f|`` at points in box coordinates: about the distance to the zero set.
 
+    When the surface carries its meshing grid sum (``surface.meshing``, from
+    :func:`o3drbf.extract.mesh_evaluator`), f and grad f come from it: its
+    tolerance, a fraction of max |f|, is far below the residual scale, and its
+    gradients are about ten times that (a finer grid for gradients alone would
+    cost more than the whole measurement).
+
     Parameters
     ----------
     surface : ImplicitSurface
@@ -136,7 +142,12 @@ def geometric_residuals(surface, points) -> np.ndarray:
     -------
     (M,) array (inf where the gradient vanishes and f does not)
     """
-    f, g = surface.evaluate_box(np.asarray(points, dtype=float).reshape(-1, 3), gradient=True)
+    pts = np.asarray(points, dtype=float).reshape(-1, 3)
+    meshing = getattr(surface, "meshing", None)
+    if getattr(meshing, "kind", None) == "grid":
+        f, g = meshing(pts, gradient=True)
+    else:
+        f, g = surface.evaluate_box(pts, gradient=True)
     return _distance(f, g)
 
 
@@ -150,9 +161,8 @@ def _distance(f: np.ndarray, g: np.ndarray) -> np.ndarray:
 def constraint_residuals(surface, constraints: Constraints, index: np.ndarray) -> np.ndarray:
     """:func:`geometric_residuals` at ``constraints.points[index]``.
 
-    When the surface carries its meshing grid sum (``surface.meshing``, from
-    :func:`o3drbf.extract.mesh_evaluator`), f and grad f come from it (its tolerance, a
-    fraction of max |f|, is far below the residual scale).  Otherwise, when the surface's
+    When the surface carries its meshing grid sum, f and grad f come from it (as in
+    :func:`geometric_residuals`).  Otherwise, when the surface's
     centres are the constraints' points (a fit of all of them, evaluated directly), the sums
     come from :func:`o3drbf.rbf.compiled.direct_sum_at_centres`, which evaluates each pair of
     centres once for both ends; they agree with ``evaluate_box``'s to
@@ -161,12 +171,8 @@ def constraint_residuals(surface, constraints: Constraints, index: np.ndarray) -
     """
     from o3drbf.rbf import compiled
 
-    meshing = getattr(surface, "meshing", None)
-    if getattr(meshing, "kind", None) == "grid":  # the meshing grid sum, built already: far cheaper than a direct sum
-        f, g = meshing(constraints.points[index], gradient=True)
-        return _distance(f, g)
     centres = getattr(surface, "centres", None)
-    if (getattr(surface, "evaluator", None) is None and centres is not None and compiled.supports(surface.kernel)
+    if (getattr(getattr(surface, "meshing", None), "kind", None) != "grid" and getattr(surface, "evaluator", None) is None and centres is not None and compiled.supports(surface.kernel)
             and centres.shape == constraints.points.shape and np.array_equal(centres, constraints.points)):
         from o3drbf.rbf.sums import polynomial_basis
 

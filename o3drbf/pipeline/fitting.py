@@ -14,9 +14,15 @@ from o3drbf.rbf.kernels import Kernel, MultiOrder
 from o3drbf.solvers import FAST_EVALUATION_MIN, Refitter, Solution, solve
 from o3drbf.surface import ImplicitSurface
 
-__all__ = ["fit", "surface_of", "check_fit_memory", "mesh_cells", "EARLY_CHECK_MIN", "EARLY_CHECK_SLACK", "early_fit_check", "fit_surface"]
+__all__ = ["fit", "surface_of", "check_fit_memory", "mesh_cells", "EARLY_CHECK_MIN", "EARLY_CHECK_SLACK", "early_fit_check", "fit_surface",
+           "ROBUST_SHIFT"]
 
 log = logging.getLogger("o3drbf")
+
+#: The root-mean-square surface shift, in residual scales, that the robust refits of a fast-evaluated
+#: fit allow their solve's residual (:func:`o3drbf.solvers.fast.mesh_tolerance`); the last refit is
+#: then solved on to the mesh's tolerance.
+ROBUST_SHIFT = 1e-2
 
 
 def fit(constraints: Constraints, kernel: Kernel, normalization: Normalization, solver: str = "auto", progress: bool = False,
@@ -255,15 +261,32 @@ def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = F
     # One factorization for the first fit and every robust refit (Woodbury updates of the dense one).
     session = Refitter(params.kernel, constraints.points, constraints.values, constraints.smoothing, method=options.solver,
                        checked=checked, progress=progress)
+    # The residual scale never falls below half a constraint spacing, so
+    # clean data are not reweighted (no refit when no residual reaches
+    # Tukey's c times the scale).
+    scale = max(params.noise, 0.5 * cset.spacing) if np.isfinite(cset.spacing) else params.noise
+    rtol = loose = None
     if session.method == "fast":
         from o3drbf.solvers.fast.tolerance import mesh_tolerance
 
         cells = float(resolution) if resolution else auto_resolution(cset.spacing)
-        session.options["rtol"] = mesh_tolerance(constraints.values, 2.0 / cells)  # the box's longest side is 2
+        rtol = session.options["rtol"] = mesh_tolerance(constraints.values, 2.0 / cells)  # the box's longest side is 2
+        # The robust refits of a fast-evaluated fit only measure residuals against the scale: solved to
+        # move the surface by a small fraction of it, and the last one finished to ``rtol`` afterwards.
+        # (Below FAST_EVALUATION_MIN the residuals' direct sums cost more than the iterations saved.)
+        if scale > 0 and len(constraints) >= FAST_EVALUATION_MIN:
+            loose = max(rtol, mesh_tolerance(constraints.values, scale, shift=ROBUST_SHIFT))
+    last = {}
 
     def refit(smoothing=None):
+        last["smoothing"] = smoothing
         keep, solution = session.solve(smoothing)
-        return surface_of(solution, constraints.points[keep], params.kernel, cset.normalization), solution
+        fitted = surface_of(solution, constraints.points[keep], params.kernel, cset.normalization)
+        if fitted.evaluator is not None:  # a fast-evaluated fit: its own grid, wrapped, serves residuals and meshing
+            from o3drbf.extract import mesh_evaluator
+
+            mesh_evaluator(fitted)
+        return fitted, solution
 
     surface, sol = refit()
     robust = None
@@ -277,14 +300,16 @@ def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = F
             # first residuals, f and grad f, come from it (not from a grid ten times as fine for gradients alone).
             mesh_evaluator(surface)
 
-        # The residual scale never falls below half a constraint spacing, so
-        # clean data are not reweighted (no refit when no residual reaches
-        # Tukey's c times the scale).
-        scale = max(params.noise, 0.5 * cset.spacing) if np.isfinite(cset.spacing) else params.noise
+        if loose is not None:
+            session.options["rtol"] = loose
         surface, sol, rep = robust_reweight(
             lambda c: fit(c, params.kernel, cset.normalization, solver=options.solver, progress=progress),
             constraints, scale, first=(surface, sol), refit=refit,
         )
+        if loose is not None:
+            session.options["rtol"] = rtol
+            if rep.rounds and loose > rtol:  # the last refit, solved on from where it stopped
+                surface, sol = refit(last["smoothing"])
         robust = {"rounds": int(rep.rounds), "downweighted": int(rep.downweighted), "dropped": int(rep.dropped),
                   "scale": float(rep.scale), "seconds": float(rep.seconds), "constraints": rep.constraints}
         if rep.downweighted or rep.dropped:
