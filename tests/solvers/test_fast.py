@@ -568,7 +568,7 @@ def test_a_long_solve_is_not_cut_by_an_early_restart():
 def test_the_second_coarse_correction_leaves_no_residual_at_the_coarse_centres():
     """With a capped coarse level the preconditioner corrects the coarse weights again after the local
     step, from the residual left at the coarse centres: with exact products (a dense stand-in) that
-    residual is then zero (up to the Cholesky solve's rounding), which the one-sided scheme leaves
+    residual is then zero (up to the rounding of the Cholesky factor, kept in single precision), which the one-sided scheme leaves
     large.  The solve with it reaches the dense solution; a coarse level that is not capped takes no
     second correction.  (What it saves, fewer iterations at the mesh tolerance from about 30,000
     centres, is measured by benchmarks/fast_system.py: benchmarks/recorded/fast_solver.md, sessions 22-23.)"""
@@ -585,7 +585,7 @@ def test_the_second_coarse_correction_leaves_no_residual_at_the_coarse_centres()
         assert p.info["post_coarse"] is post
         z = p(r)
         left[post] = np.linalg.norm((r - op.matrix @ z - lam * z)[p.coarse]) / np.linalg.norm(r[p.coarse])
-    assert left[True] < 1e-8 and left[False] > 1e-2, left
+    assert left[True] < 1e-4 and left[False] > 1e-2, left
     assert TwoLevel(op, lam, exact_below=0, max_coarse=len(c) // 8).info["post_coarse"] is False  # not capped
     sol = fast.solve(kernel, c, y, lam, rtol=1e-9, operator=op, max_iterations=300, preconditioner=pre)
     assert sol.info["converged"] and sol.info["preconditioner"]["post_coarse"]
@@ -642,4 +642,30 @@ def test_the_coarse_level_factors_the_full_coarse_matrix_from_its_lower_triangle
         xc = c[p.coarse]
         full = kernel_matrix(kernel, xc) + np.diag((lam, lam2)[step][p.coarse])
         want = np.tril(sla.cho_factor(full, lower=True)[0])
-        np.testing.assert_allclose(np.tril(p.factor[0]), want, rtol=0, atol=1e-12 * np.abs(want).max())
+        assert p.factor.dtype == np.float32  # kept in single precision (COARSE_SINGLE)
+        np.testing.assert_allclose(np.tril(p.factor), want, rtol=0, atol=1e-6 * np.abs(want).max())
+
+
+def test_the_coarse_solve_in_single_precision_matches_the_double_one():
+    """The coarse factor, factored in double and kept in single precision, solves the coarse system to
+    about single precision times the factor's condition; in double (``COARSE_SINGLE`` off) to rounding."""
+    from o3drbf.rbf.sums import kernel_matrix
+    from o3drbf.solvers.fast import precondition
+
+    kernel = MultiOrder(10.0, 0.01)
+    c, _, lam = torus_problem(1500, seed=3)
+    a = kernel_matrix(kernel, c) + np.diag(lam)
+    b = np.random.default_rng(0).normal(size=len(c))
+    want = np.linalg.solve(a, b)
+    single = precondition.coarse_factor(np.tril(a))
+    x = precondition.coarse_solve(single, b)
+    assert single.dtype == np.float32 and x.dtype == np.float64
+    err = np.linalg.norm(x - want) / np.linalg.norm(want)
+    assert 1e-9 < err < 1e-3  # single precision: far from exact, far below a preconditioner's needs
+    precondition.COARSE_SINGLE = False
+    try:
+        double = precondition.coarse_factor(np.tril(a))
+    finally:
+        precondition.COARSE_SINGLE = True
+    assert double.dtype == np.float64
+    assert np.linalg.norm(precondition.coarse_solve(double, b) - want) / np.linalg.norm(want) < 1e-9

@@ -19,7 +19,7 @@ from o3drbf.solvers.fast.grid import GridSum
 from o3drbf.solvers.fast.operator import fast_operator
 from o3drbf.solvers.fast.neighbours import CellList, csr_matvec, njit
 
-__all__ = ["TwoLevel", "TwoLevelSettings", "coarse_size", "second_correction"]
+__all__ = ["TwoLevel", "TwoLevelSettings", "coarse_size", "second_correction", "coarse_factor", "coarse_solve", "COARSE_SINGLE"]
 
 
 def _uniform_subset(points: np.ndarray, count: int) -> np.ndarray:
@@ -57,6 +57,46 @@ def _voxels(points, lo, h):
     key = np.floor((points - lo) / h).astype(np.int64)
     dims = key.max(axis=0) + 1
     return (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2], key
+
+
+#: The coarse level's Cholesky factor is kept in single precision (factored in double): its two
+#: triangular solves a preconditioner step, bound by reading the factor, read half as much, and the
+#: factor, which lives through the solve, takes half the memory.
+COARSE_SINGLE = True
+
+
+def coarse_factor(a: np.ndarray) -> np.ndarray:
+    """The lower Cholesky factor of the symmetric positive definite ``a`` (its lower triangle read,
+    overwritten), Fortran-ordered, in single precision when :data:`COARSE_SINGLE`; its upper triangle
+    is not set.
+
+    Raises
+    ------
+    numpy.linalg.LinAlgError
+        ``a`` is not positive definite.
+    """
+    c, _ = sla.cho_factor(a, lower=True, overwrite_a=True, check_finite=False)
+    c = np.asfortranarray(c)
+    if not COARSE_SINGLE:
+        return c
+    n = len(c)
+    out = np.empty((n, n), dtype=np.float32, order="F")  # only its lower triangle is written (and its pages touched)
+    step = max(1, (1 << 22) // max(n, 1))
+    for i in range(0, n, step):
+        j = min(i + step, n)
+        out[i:, i:j] = c[i:, i:j]
+    return out
+
+
+def coarse_solve(factor: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``x`` with ``L L^T x = b`` for the lower factor ``L`` of :func:`coarse_factor`, in double.
+
+    Two BLAS triangular solves (``trsv``): for one right-hand side they read the factor once each,
+    where LAPACK's ``potrs`` goes through the matrix-matrix ``trsm`` at several times the cost.
+    """
+    trsv = sla.blas.strsv if factor.dtype == np.float32 else sla.blas.dtrsv
+    y = trsv(factor, np.asarray(b, dtype=factor.dtype), lower=1)
+    return np.asarray(trsv(factor, y, lower=1, trans=1, overwrite_x=1), dtype=float)
 
 
 @njit(cache=True)
@@ -280,7 +320,7 @@ class TwoLevel:
         else:
             acc = kernel_matrix(kernel, xc, lower=True)  # the lower triangle: all the factorization reads
             acc[np.diag_indices(len(xc))] += self.lam[self.coarse]
-            self.factor = sla.cho_factor(acc, lower=True, overwrite_a=True, check_finite=False)
+            self.factor = coarse_factor(acc)
             del acc
         self.exact = len(self.coarse) == n
         self.block = None
@@ -331,7 +371,7 @@ class TwoLevel:
             self.factor = None  # (its memory freed before the new one)
             acc = kernel_matrix(self.fast.kernel, self.fast.centres[self.coarse], lower=True)
             acc[np.diag_indices(len(self.coarse))] += lam[self.coarse]
-            self.factor = sla.cho_factor(acc, lower=True, overwrite_a=True, check_finite=False)
+            self.factor = coarse_factor(acc)
 
     def _coarse_to_fine(self, zc):
         """(Phi + Lambda)[:, C] z_C."""
@@ -345,7 +385,7 @@ class TwoLevel:
     def _coarse_solve(self, rc):
         """z_C ~ (Phi_CC + Lambda_C)^{-1} r_C: Cholesky, or a few nested FGMRES steps."""
         if self.factor is not None:
-            return sla.cho_solve(self.factor, rc, check_finite=False)
+            return coarse_solve(self.factor, rc)
         sub, lam, e = self._sub, self._sub_lam, self._sub_eps
 
         def product(v, rel=1.0):
