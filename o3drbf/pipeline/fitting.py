@@ -220,6 +220,12 @@ def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = F
                 checked: bool = False, resolution: float | None = None):
     """Solve for the implicit function; robustly reweighted by default.
 
+    The robust pass (:func:`o3drbf.constraints.robust.robust_reweight`) refits
+    with new smoothing until the down-weighted constraints settle.  A fit of
+    ``FAST_EVALUATION_MIN`` constraints or more solves those refits only to
+    move the surface by ``ROBUST_SHIFT`` residual scales (they serve to
+    measure residuals), then solves the last one on to the mesh's tolerance.
+
     Parameters
     ----------
     cset : ConstraintSet
