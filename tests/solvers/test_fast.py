@@ -646,6 +646,21 @@ def test_the_coarse_level_factors_the_full_coarse_matrix_from_its_lower_triangle
         np.testing.assert_allclose(np.tril(p.factor), want, rtol=0, atol=1e-6 * np.abs(want).max())
 
 
+def test_a_coarse_matrix_single_precision_cannot_factor_is_factored_in_double():
+    """The Hilbert matrix of order 10 (condition 1.6e13) breaks single precision's Cholesky factorization
+    down (LAPACK's spotrf fails), not double's: the coarse factor then comes from the double one, kept in
+    single precision, and still factors the matrix to that precision."""
+    import scipy.linalg as sla
+
+    from o3drbf.solvers.fast import precondition
+
+    h = sla.hilbert(10)
+    assert sla.lapack.spotrf(np.asfortranarray(h.astype(np.float32)), lower=1)[1] != 0
+    c = precondition.coarse_factor(np.asfortranarray(h.copy()))
+    low = np.tril(c).astype(float)
+    assert c.dtype == np.float32 and np.abs(low @ low.T - h).max() < 1e-6
+
+
 def test_the_coarse_solve_in_single_precision_matches_the_double_one():
     """The coarse factor, factored in double and kept in single precision, solves the coarse system to
     about single precision times the factor's condition; in double (``COARSE_SINGLE`` off) to rounding."""

@@ -59,33 +59,42 @@ def _voxels(points, lo, h):
     return (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2], key
 
 
-#: The coarse level's Cholesky factor is kept in single precision (factored in double): its two
-#: triangular solves a preconditioner step, bound by reading the factor, read half as much, and the
-#: factor, which lives through the solve, takes half the memory.
+#: The coarse level's Cholesky factorization and factor are in single precision (double where the single
+#: factorization breaks down): the factorization takes a fraction of the time, its two triangular solves
+#: a preconditioner step, bound by reading the factor, read half as much, and the factor, which lives
+#: through the solve, takes half the memory.  The smoothing keeps the coarse matrix well conditioned; a
+#: preconditioner needs no more than single precision (benchmarks/recorded/fast_solver.md, session 27).
 COARSE_SINGLE = True
 
 
+def _lower(a: np.ndarray, dtype) -> np.ndarray:
+    """A Fortran-ordered copy of the lower triangle of ``a`` in ``dtype``; its upper triangle is not set
+    (nor its pages touched)."""
+    n = len(a)
+    out = np.empty((n, n), dtype=dtype, order="F")
+    step = max(1, (1 << 22) // max(n, 1))
+    for i in range(0, n, step):
+        j = min(i + step, n)
+        out[i:, i:j] = a[i:, i:j]
+    return out
+
+
 def coarse_factor(a: np.ndarray) -> np.ndarray:
-    """The lower Cholesky factor of the symmetric positive definite ``a`` (its lower triangle read,
-    overwritten), Fortran-ordered, in single precision when :data:`COARSE_SINGLE`; its upper triangle
-    is not set.
+    """The lower Cholesky factor of the symmetric positive definite ``a`` (its lower triangle read; it may
+    be overwritten), Fortran-ordered; its upper triangle is not set.  With :data:`COARSE_SINGLE`, factored
+    and kept in single precision, or, where that breaks down, factored in double and kept in single.
 
     Raises
     ------
     numpy.linalg.LinAlgError
         ``a`` is not positive definite.
     """
+    if COARSE_SINGLE:
+        c, info = sla.lapack.spotrf(_lower(a, np.float32), lower=1, overwrite_a=1, clean=0)
+        if info == 0:
+            return c
     c, _ = sla.cho_factor(a, lower=True, overwrite_a=True, check_finite=False)
-    c = np.asfortranarray(c)
-    if not COARSE_SINGLE:
-        return c
-    n = len(c)
-    out = np.empty((n, n), dtype=np.float32, order="F")  # only its lower triangle is written (and its pages touched)
-    step = max(1, (1 << 22) // max(n, 1))
-    for i in range(0, n, step):
-        j = min(i + step, n)
-        out[i:, i:j] = c[i:, i:j]
-    return out
+    return _lower(c, np.float32) if COARSE_SINGLE else np.asfortranarray(c)
 
 
 def coarse_solve(factor: np.ndarray, b: np.ndarray) -> np.ndarray:
