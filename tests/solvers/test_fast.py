@@ -511,22 +511,21 @@ def test_relaxed_products_leave_no_gap_between_the_recurrence_and_the_true_resid
 
 
 def test_coarse_level_grows_with_n_up_to_what_cholesky_takes():
-    """The coarse level: every centre up to exact_below, N/8 capped at max(6,000, N/28) and 12,000 (a Cholesky;
-    the installed OpenBLAS crashes in larger ones, so a larger max_coarse is refused), nested only when asked."""
-    from o3drbf.solvers.dense import DENSE_MAX
-    from o3drbf.solvers.fast.precondition import TwoLevel, TwoLevelSettings, coarse_size
+    """The coarse level: every centre up to exact_below, N/8 capped at max(6,000, N/20) and 16,000 (a Cholesky;
+    a max_coarse above COARSE_MAX is refused), nested only when asked."""
+    from o3drbf.solvers.fast.precondition import COARSE_MAX, TwoLevel, TwoLevelSettings, coarse_size
 
     st = TwoLevelSettings()
     assert coarse_size(2_500, st) == (2_500, 0)  # exact
     assert coarse_size(40_000, st) == (5_000, 0)  # N / 8
-    assert coarse_size(111_339, st) == (6_000, 0)  # the cap's floor (N / 28 = 3,976)
-    assert coarse_size(200_000, st) == (200_000 // 28, 0)
-    assert coarse_size(333_206, st) == (11_900, 0)
-    assert coarse_size(1_000_000, st) == (12_000, 0) and st.max_coarse <= DENSE_MAX
+    assert coarse_size(111_339, st) == (6_000, 0)  # the cap's floor (N / 20 = 5,566)
+    assert coarse_size(200_000, st) == (200_000 // 20, 0)
+    assert coarse_size(333_206, st) == (16_000, 0)
+    assert coarse_size(1_000_000, st) == (16_000, 0) and st.max_coarse <= COARSE_MAX
     assert coarse_size(333_206, TwoLevelSettings(max_coarse=6000, nested=8)) == (41_650, 8)  # the nested level, asked for
     c, _, lam = torus_problem(500, seed=1)
     with pytest.raises(ValueError, match="max_coarse"):
-        TwoLevel(fast.fast_operator(MultiOrder(10.0, 0.01), c, eps=1e-4), lam, max_coarse=DENSE_MAX + 1)
+        TwoLevel(fast.fast_operator(MultiOrder(10.0, 0.01), c, eps=1e-4), lam, max_coarse=COARSE_MAX + 1)
 
 
 def test_coarse_centres_do_not_depend_on_the_order():

@@ -76,11 +76,11 @@ satisfy the polynomial constraint ``Q^T w = 0`` to rounding (the constant
 p0 is solved for, not projected away).  M is two-level multiplicative:
 
 1. coarse: a uniform subset C of about N/8 centres, the exact kernel system
-   on C factored by Cholesky, ``z_C = (Phi_CC + Lambda_C)^{-1} r_C``; |C| is
-   capped at max(6,000, N/28) and at 12,000 (6,000 up to N = 168,000, 12,000
-   from N = 336,000: the Cholesky's set-up grows as |C|^3, the iterations a
-   larger C saves cost more as N grows; the installed OpenBLAS crashes in a
-   Cholesky above ``DENSE_MAX``).  With ``nested`` steps (not the default)
+   on C factored by Cholesky in single precision, ``z_C = (Phi_CC +
+   Lambda_C)^{-1} r_C``; |C| is capped at max(6,000, N/20) and at 16,000
+   (6,000 up to N = 120,000, 16,000 from N = 320,000: the Cholesky's set-up
+   grows as |C|^3, the iterations a larger C saves cost more as N grows).
+   With ``nested`` steps (not the default)
    a larger coarse level is solved by nested FGMRES steps with products on
    C preconditioned by the same scheme on C;
 2. residual update ``r' = r - (Phi + Lambda)[:, C] z_C`` (dense block when

@@ -19,7 +19,8 @@ from o3drbf.solvers.fast.grid import GridSum
 from o3drbf.solvers.fast.operator import fast_operator
 from o3drbf.solvers.fast.neighbours import CellList, csr_matvec, njit
 
-__all__ = ["TwoLevel", "TwoLevelSettings", "coarse_size", "second_correction", "coarse_factor", "coarse_solve", "COARSE_SINGLE"]
+__all__ = ["TwoLevel", "TwoLevelSettings", "coarse_size", "second_correction", "coarse_factor", "coarse_solve", "COARSE_SINGLE",
+           "COARSE_MAX"]
 
 
 def _uniform_subset(points: np.ndarray, count: int) -> np.ndarray:
@@ -66,6 +67,11 @@ def _voxels(points, lo, h):
 #: preconditioner needs no more than single precision (benchmarks/recorded/fast_solver.md, session 27).
 COARSE_SINGLE = True
 
+#: The largest coarse level (``TwoLevelSettings.max_coarse``): its single-precision factorization ran
+#: to 19,370 centres on two threads (a double one of 16,000 crashes the installed OpenBLAS, whence
+#: ``DENSE_MAX``; above it the double fallback of :func:`coarse_factor` takes one thread).
+COARSE_MAX = 20_000
+
 
 def _lower(a: np.ndarray, dtype) -> np.ndarray:
     """A Fortran-ordered copy of the lower triangle of ``a`` in ``dtype``; its upper triangle is not set
@@ -93,7 +99,13 @@ def coarse_factor(a: np.ndarray) -> np.ndarray:
         c, info = sla.lapack.spotrf(_lower(a, np.float32), lower=1, overwrite_a=1, clean=0)
         if info == 0:
             return c
-    c, _ = sla.cho_factor(a, lower=True, overwrite_a=True, check_finite=False)
+    if len(a) > DENSE_MAX:  # the installed OpenBLAS crashes in larger two-thread double factorizations
+        from threadpoolctl import threadpool_limits
+
+        with threadpool_limits(limits=1, user_api="blas"):
+            c, _ = sla.cho_factor(a, lower=True, overwrite_a=True, check_finite=False)
+    else:
+        c, _ = sla.cho_factor(a, lower=True, overwrite_a=True, check_finite=False)
     return _lower(c, np.float32) if COARSE_SINGLE else np.asfortranarray(c)
 
 
@@ -190,8 +202,8 @@ class TwoLevelSettings:
 
     neighbours: int = 64
     coarse_ratio: int = 8
-    max_coarse: int = 12000
-    cap_ratio: int = 28
+    max_coarse: int = 16000
+    cap_ratio: int = 20
     cap_floor: int = 6000
     inner: int = 10
     eps: float = 1e-3
@@ -224,11 +236,10 @@ class TwoLevel:
     coarse_ratio, cap_ratio, cap_floor, max_coarse : int
         Coarse level size ``N / coarse_ratio``, capped at ``max(cap_floor,
         N / cap_ratio)`` and at ``max_coarse`` (:func:`coarse_size`), solved
-        by Cholesky: 6,000 centres up to N = 168,000, 12,000 from N = 336,000
-        (a larger coarse level saves iterations at large N, where they cost
-        most; its factorization's set-up grows as the cube of its size).
-        ``max_coarse`` is at most ``DENSE_MAX`` (the installed OpenBLAS
-        crashes in larger multithreaded Cholesky factorizations).
+        by Cholesky (:func:`coarse_factor`): 6,000 centres up to N = 120,000,
+        16,000 from N = 320,000 (a larger coarse level saves iterations at
+        large N, where they cost most; its factorization's set-up grows as
+        the cube of its size).  ``max_coarse`` is at most :data:`COARSE_MAX`.
     inner : int
         CG steps on the near-field matrix.
     damping : float
@@ -283,9 +294,9 @@ class TwoLevel:
         if unknown:
             raise ValueError(f"unknown preconditioner setting(s) {', '.join(unknown)}; valid: {', '.join(f.name for f in fields(TwoLevelSettings))}")
         st = replace(settings or TwoLevelSettings(), **overrides)
-        if st.max_coarse > DENSE_MAX:
-            raise ValueError(f"max_coarse {st.max_coarse} is above {DENSE_MAX}: the installed OpenBLAS crashes in larger Cholesky "
-                             "factorizations; use nested steps for a larger coarse level")
+        if st.max_coarse > COARSE_MAX:
+            raise ValueError(f"max_coarse {st.max_coarse} is above {COARSE_MAX}, the largest coarse level factored here; use nested "
+                             "steps for a larger coarse level")
         neighbours, inner, eps, dense_budget, select = st.neighbours, st.inner, st.eps, st.dense_budget, st.select
         nested_eps, nested_rtol = st.nested_eps, st.nested_rtol
         kernel, x = fast.kernel, fast.centres
