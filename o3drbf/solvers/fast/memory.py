@@ -135,7 +135,7 @@ def _settings(options=None):
 def _twolevel_plan(kernel, centres, tree, lam_count, coarse_update_nnz, eps, options=None, limit=None) -> int:
     """Bytes of a :class:`TwoLevel` on these centres, for an operator at tolerance ``eps``, with its default
     options (``options`` overrides)."""
-    from o3drbf.solvers.fast.precondition import coarse_size
+    from o3drbf.solvers.fast.precondition import COARSE_SINGLE, coarse_size
 
     st = _settings(options)
     n = len(centres)
@@ -152,7 +152,9 @@ def _twolevel_plan(kernel, centres, tree, lam_count, coarse_update_nnz, eps, opt
     elif mc < n:
         total += int(coarse_update_nnz * mc / n) * NNZ_BYTES
     if not nested:
-        return int(total + 1.5 * 8 * mc * mc)
+        # The coarse matrix's lower triangle in double (its upper half never touched), and the factor's in
+        # single precision while the double one is alive (double: the matrix and its factor in place).
+        return int(total + (6 if COARSE_SINGLE else 12) * mc * mc)
     sub_idx = np.sort(np.random.default_rng(2).choice(n, mc, replace=False))
     sub = centres[sub_idx]
     sub_tree = cKDTree(sub)
