@@ -287,6 +287,16 @@ def _reconstruct_tiled(args, data, options, out, t0) -> int:
     return 0
 
 
+def _refits_note(s) -> str:
+    """After robust refits, what the solve line's figures are: the final fit's, not the whole fit stage's."""
+    rounds = int((s.robust or {}).get("rounds", 0))
+    if not rounds:
+        return ""
+    fit = next((t.seconds for t in s.stages if t.name == "fit"), None)
+    return (f" (the final fit's; the fit stage, with the first fit and {rounds} robust refit{'s' if rounds > 1 else ''}, "
+            + (f"took {fit:.2f} s)" if fit is not None else "is in the time per stage)"))
+
+
 def _watertight_line(rep: dict) -> str:
     """The summary's watertight line (from :func:`o3drbf.mesh.metrics.mesh_report`): Open3D's test, topology, pieces."""
     return (f"  watertight       {'yes' if rep['watertight'] else 'NO'} (Open3D's is_watertight: closed, manifold, "
@@ -370,7 +380,7 @@ def summary(result, points, input_path, output_path, model_path=None, seconds=No
         f"  basis            {s.basis}",
         f"  parameters       {_parameters_line(s)}",
         f"  solve            {s.solver}, {s.solve_seconds:.2f} s, relative residual {s.residual:.1e}"
-        + (f", {s.iterations} iterations" if s.iterations else ""),
+        + (f", {s.iterations} iterations" if s.iterations else "") + _refits_note(s),
     ]
     if s.robust:
         r = s.robust

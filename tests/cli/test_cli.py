@@ -29,6 +29,7 @@ def test_reconstruct_writes_mesh_model_and_summary(scan, capsys):
     text = capsys.readouterr().out
     for key in ("points           4,000", "surface", "exterior", "mean spacing", "relative residual", "triangles", "watertight       yes", "fitness error"):
         assert key in text, key
+    assert "the final fit's" not in text  # no robust refit: the solve line is the whole fit's
     mesh = o3d.io.read_triangle_mesh(str(out))
     assert len(mesh.triangles) > 1000 and mesh.is_edge_manifold()
     assert (scan / "model.npz").exists()
@@ -189,3 +190,22 @@ def test_coloured_input_gives_a_coloured_mesh(tmp_path):
     out2 = tmp_path / "plain.ply"
     assert main(["reconstruct", str(src), "-o", str(out2), "--resolution", "32", "--surface-count", "600", "-q", "--no-color"]) == 0
     assert not o3d.io.read_triangle_mesh(str(out2)).has_vertex_colors()
+
+
+def test_after_robust_refits_the_summary_says_whose_solve_it_shows(tmp_path):
+    """Noisy points with strays: the robust pass refits, and the solve line's time and iterations are
+    the final fit's only, so the line says so and gives the fit stage's time, refits included."""
+    import o3drbf
+    from o3drbf.cli.commands import summary
+
+    p, n = Torus().sample(15_000, noise=0.01, seed=3)
+    rng = np.random.default_rng(4)
+    strays = rng.choice(len(p), 450, replace=False)
+    p[strays] += rng.normal(0.0, 0.08, (len(strays), 3))
+    result = o3drbf.reconstruct(p, n, resolution=32)
+    rounds = result.report.robust["rounds"]
+    assert rounds >= 1
+    fit = next(t.seconds for t in result.report.stages if t.name == "fit")
+    line = next(x for x in summary(result, p, "in.ply", "out.ply").splitlines() if x.strip().startswith("solve"))
+    assert f"(the final fit's; the fit stage, with the first fit and {rounds} robust refits, took {fit:.2f} s)" in line
+    assert result.report.solve_seconds < fit
