@@ -660,6 +660,26 @@ def test_a_coarse_matrix_single_precision_cannot_factor_is_factored_in_double():
     assert c.dtype == np.float32 and np.abs(low @ low.T - h).max() < 1e-6
 
 
+def test_the_coarse_factor_reads_only_the_lower_triangle():
+    """What lies above the diagonal of the coarse matrix is never written (its pages never touched): the
+    factor neither reads it nor warns about it, whatever it holds (here 1e300 and NaN)."""
+    import warnings
+
+    from o3drbf.rbf.sums import kernel_matrix
+    from o3drbf.solvers.fast import precondition
+
+    c, _, lam = torus_problem(700, seed=2)
+    a = kernel_matrix(MultiOrder(10.0, 0.01), c) + np.diag(lam)
+    want = precondition.coarse_factor(np.asfortranarray(a.copy()))
+    dirty = np.asfortranarray(a.copy())
+    upper = np.triu_indices(len(a), 1)
+    dirty[upper] = np.where(upper[0] % 2, 1e300, np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = precondition.coarse_factor(dirty)
+    np.testing.assert_array_equal(np.tril(got), np.tril(want))
+
+
 def test_the_coarse_solve_in_single_precision_matches_the_double_one():
     """The coarse factor, factored in double and kept in single precision, solves the coarse system to
     about single precision times the factor's condition; in double (``COARSE_SINGLE`` off) to rounding."""

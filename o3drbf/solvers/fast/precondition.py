@@ -81,7 +81,8 @@ def _lower(a: np.ndarray, dtype) -> np.ndarray:
     step = max(1, (1 << 22) // max(n, 1))
     for i in range(0, n, step):
         j = min(i + step, n)
-        out[i:, i:j] = a[i:, i:j]
+        out[i:j, i:j] = np.tril(a[i:j, i:j])  # (what lies above the diagonal is not read: it may be anything)
+        out[j:, i:j] = a[j:, i:j]
     return out
 
 
