@@ -143,12 +143,15 @@ def geometric_residuals(surface, points) -> np.ndarray:
     (M,) array (inf where the gradient vanishes and f does not)
     """
     pts = np.asarray(points, dtype=float).reshape(-1, 3)
-    meshing = getattr(surface, "meshing", None)
-    if getattr(meshing, "kind", None) == "grid":
-        f, g = meshing(pts, gradient=True)
-    else:
-        f, g = surface.evaluate_box(pts, gradient=True)
+    meshing = _meshing_grid(surface)
+    f, g = meshing(pts, gradient=True) if meshing is not None else surface.evaluate_box(pts, gradient=True)
     return _distance(f, g)
+
+
+def _meshing_grid(surface):
+    """The surface's meshing grid sum (``surface.meshing`` of kind "grid"), or None."""
+    meshing = getattr(surface, "meshing", None)
+    return meshing if getattr(meshing, "kind", None) == "grid" else None
 
 
 def _distance(f: np.ndarray, g: np.ndarray) -> np.ndarray:
@@ -172,8 +175,9 @@ def constraint_residuals(surface, constraints: Constraints, index: np.ndarray) -
     from o3drbf.rbf import compiled
 
     centres = getattr(surface, "centres", None)
-    if (getattr(getattr(surface, "meshing", None), "kind", None) != "grid" and getattr(surface, "evaluator", None) is None and centres is not None and compiled.supports(surface.kernel)
-            and centres.shape == constraints.points.shape and np.array_equal(centres, constraints.points)):
+    if (_meshing_grid(surface) is None and getattr(surface, "evaluator", None) is None and centres is not None
+            and compiled.supports(surface.kernel) and centres.shape == constraints.points.shape
+            and np.array_equal(centres, constraints.points)):
         from o3drbf.rbf.sums import polynomial_basis
 
         f, g = compiled.direct_sum_at_centres(surface.kernel, centres, surface.weights, index)
