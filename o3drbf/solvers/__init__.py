@@ -200,7 +200,9 @@ def solve_fast(kernel: Kernel, centres, y, lam, rtol: float | None = None, max_i
     1e-6 by default and at most 200 iterations, logged; ``operator`` (a prebuilt product) is passed on, and
     so are ``start["x0"]`` (a starting ``[w; p]``) and ``start["preconditioner"]`` (an earlier solve's
     ``TwoLevel``, reused) when given; the preconditioner used is put back in ``start`` (never in the
-    solution's ``info``: it holds memory).
+    solution's ``info``: it holds memory), and so is the solve's true residual (``start["residual"]``):
+    a refit from that solution with new smoothing starts from it, moved by the smoothing's change,
+    instead of a product (:func:`_moved_residual`).
 
     The system is solved with its centres in :func:`o3drbf.solvers.fast.spatial_order` (the
     sparse parts then read nearby memory; ``start["order"]``, when given, is that order, not
@@ -215,18 +217,24 @@ def solve_fast(kernel: Kernel, centres, y, lam, rtol: float | None = None, max_i
         order = fast.spatial_order(centres)
     if operator is not None and getattr(operator, "centres", None) is not None and not np.array_equal(operator.centres, centres[order]):
         raise ValueError("operator must be built on the centres in o3drbf.solvers.fast.spatial_order(centres)")
+    rtol = 1e-6 if rtol is None else rtol
     x0 = (start or {}).get("x0")
+    r0 = None
     if x0 is not None:
         x0 = np.concatenate([x0[:n][order], x0[n:]])
-    sol = fast.solve(kernel, centres[order], y[order], lam[order], rtol=1e-6 if rtol is None else rtol,
-                     max_iterations=min(max_iterations, 200), progress=progress, backend=backend, operator=operator, x0=x0,
+        r0 = _moved_residual((start or {}).get("residual"), x0, lam[order], fast.product_tolerance(rtol))
+    sol = fast.solve(kernel, centres[order], y[order], lam[order], rtol=rtol,
+                     max_iterations=min(max_iterations, 200), progress=progress, backend=backend, operator=operator, x0=x0, r0=r0,
                      preconditioner_object=(start or {}).get("preconditioner"))
+    last = (sol.info.get("residual_vector"), np.concatenate([sol.weights, sol.poly]), lam[order], sol.info["eps"])
     weights = np.empty_like(sol.weights)
     weights[order] = sol.weights
     sol.weights = weights
     used = sol.info.pop("preconditioner_object", None)
+    sol.info.pop("residual_vector", None)
     if start is not None:
         start["preconditioner"] = used
+        start["residual"] = last if last[0] is not None else None
     split = sol.info["split"]
     log.info(
         "solver: fast products (%s) + two-level preconditioned FGMRES, %d constraints: %d iterations, "
@@ -236,6 +244,22 @@ def solve_fast(kernel: Kernel, centres, y, lam, rtol: float | None = None, max_i
     )
     sol.seconds = time.perf_counter() - t0
     return sol
+
+
+def _moved_residual(last, x0, lam, eps):
+    """The residual of ``x0`` in the system with smoothing ``lam`` (solver order), from the last solve's
+    ``(residual, solution, smoothing, product tolerance)`` when ``x0`` is that solution and the products
+    are as accurate: the values and centres are the same, so only the smoothing's change moves it
+    (``r - (lam - lam_last) w``), and no product is needed.  None otherwise."""
+    if last is None:
+        return None
+    r, x, lam_last, eps_last = last
+    if eps != eps_last or len(x) != len(x0) or not np.array_equal(x, x0):
+        return None
+    r0 = r.copy()
+    n = len(lam)
+    r0[:n] -= (lam - lam_last) * x0[:n]
+    return r0
 
 
 #: A constraint :class:`Refitter` leaves out of a fast solve keeps its centre

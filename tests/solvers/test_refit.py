@@ -215,6 +215,43 @@ def test_fast_refits_reuse_the_first_refits_preconditioner_set_to_the_new_smooth
     assert "preconditioner_object" not in solve(kernel, x, y, lam0, method="fast").info and op.n == len(x)
 
 
+def test_fast_refits_start_from_the_last_residual_moved_by_the_smoothing_change(monkeypatch):
+    """A refit's FGMRES starts from the last solve's true residual less the smoothing's change times its
+    weights, without a product: that is the start's residual in the new system (checked against direct
+    sums).  A refit at another tolerance (other products) finds its residual by a product."""
+    from o3drbf.rbf.sums import kernel_sum
+    from o3drbf.solvers import DROPPED_SMOOTHING, fast
+    from o3drbf.solvers.fast import solver
+
+    kernel = MultiOrder(10, 0.01)
+    x, y, lam0 = problem(n=8000, seed=2)
+    lam0 = np.where(y == 0, 1e-5, 2.0)
+    session = Refitter(kernel, x, y, lam0, method="fast")
+    session.solve()
+    order = fast.spatial_order(x)
+    xo, yo, q = x[order], y[order], polynomial_basis(x[order], kernel.polynomial_degree)
+
+    def residual(z, lam):  # [y; 0] - K z by direct sums (independent of the grid's products)
+        w, p = z[:len(x)], z[len(x):]
+        return np.concatenate([yo - kernel_sum(kernel, xo, w, xo) - lam * w - q @ p, -q.T @ w])
+
+    starts = []
+    fgmres = solver.fgmres
+    monkeypatch.setattr(solver, "fgmres", lambda *a, **k: starts.append((k["x0"], k["r0"])) or fgmres(*a, **k))
+    lam = lam0.copy()
+    lam[[10, 11, 400]] *= 1e3
+    lam[[5, 2000]] = np.inf
+    keep, sol = session.solve(lam)
+    assert keep.sum() == len(x) - 2 and sol.residual <= 1e-6
+    x0, r0 = starts[-1]
+    big = np.where(np.isfinite(lam), lam, DROPPED_SMOOTHING * lam[np.isfinite(lam)].max())[order]
+    truth = residual(x0, big)
+    assert r0 is not None and np.abs(r0 - truth).max() <= 1e-6 * np.abs(truth).max()
+    session.options["rtol"] = 1e-4  # looser products than the last solve's: no residual to move
+    session.solve(lam)
+    assert starts[-1][0] is not None and starts[-1][1] is None
+
+
 def test_fast_solves_run_in_spatial_order_and_answer_in_the_callers():
     """solve_fast permutes the system to fast.spatial_order and back: the weights match a dense solve's in the
     caller's order, a start x0 is taken in the caller's order, and an operator on other orders is refused."""

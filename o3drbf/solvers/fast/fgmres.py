@@ -15,30 +15,33 @@ __all__ = ["fgmres", "RESTART"]
 RESTART = 100
 
 
-def fgmres(matvec, b, prec, rtol, max_iterations, restart, true_matvec, bar=None, final=True, x0=None):
+def fgmres(matvec, b, prec, rtol, max_iterations, restart, true_matvec, bar=None, final=True, x0=None, r0=None):
     """Flexible GMRES (right preconditioned), restarted from the true residual.
 
     ``matvec(x, rel)`` may be inexact with relative accuracy ``rel`` (relaxed
     as the residual falls); ``true_matvec`` is the accurate product used at
-    every restart; ``x0`` a starting guess (default 0).  Returns x,
-    iterations, true relative residual, history.
+    every restart; ``x0`` a starting guess (default 0) and ``r0`` its residual
+    ``b - true_matvec(x0)`` when the caller knows it (else one product finds it).
+    Returns x, iterations, true relative residual, history, and the true
+    residual vector ``b - true_matvec(x)`` (None after one cycle with ``final``
+    False, which does not compute it).
     """
     n = len(b)
     bn = float(np.linalg.norm(b))
     if bn == 0:
-        return np.zeros(n), 0, 0.0, []
+        return np.zeros(n), 0, 0.0, [], np.zeros(n)
     if x0 is None:
         x = np.zeros(n)
         r = b.copy()
     else:
         x = np.array(x0, dtype=float)
-        r = b - true_matvec(x)
+        r = b - true_matvec(x) if r0 is None else np.array(r0, dtype=float)
     beta = float(np.linalg.norm(r))
     its = 0
     history = []
     while True:
         if beta <= rtol * bn or its >= max_iterations:
-            return x, its, beta / bn, history
+            return x, its, beta / bn, history, r
         m = min(restart, max_iterations - its)
         V = np.empty((m + 1, n))
         Z = np.empty((m, n))
@@ -87,10 +90,10 @@ def fgmres(matvec, b, prec, rtol, max_iterations, restart, true_matvec, bar=None
         x = x + Z[:j_used].T @ y
         del V, Z
         if not final:  # one cycle, no true residual (a nested solve)
-            return x, its, est / bn, history
+            return x, its, est / bn, history, None
         r = b - true_matvec(x)
         beta = float(np.linalg.norm(r))
         if est <= rtol * bn and beta > rtol * bn and history and history[-1] < 1e-3 * beta / bn:
             # The recurrence converged but the true residual did not move:
             # the products are not accurate enough to go further.
-            return x, its, beta / bn, history
+            return x, its, beta / bn, history, r

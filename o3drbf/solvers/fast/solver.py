@@ -39,7 +39,7 @@ class SolveSettings:
 
 @reused_work()  # the grids' potentials share one set of work arrays from one product to the next
 def solve(kernel: Kernel, centres, y, lam, settings: SolveSettings | None = None, *, progress: bool = False, operator: FastSum | None = None,
-          x0=None, preconditioner_object: TwoLevel | None = None, **overrides) -> Solution:
+          x0=None, r0=None, preconditioner_object: TwoLevel | None = None, **overrides) -> Solution:
     """Solve ``[Phi + diag(lam), Q; Q^T, 0] [w; p] = [y; 0]`` with fast products.
 
     Parameters
@@ -76,6 +76,10 @@ def solve(kernel: Kernel, centres, y, lam, settings: SolveSettings | None = None
     x0 : (N + M,) array, optional
         Starting guess ``[w; p]`` (e.g. the solution of a nearby system: a
         robust refit starts from the fit before it).
+    r0 : (N + M,) array, optional
+        The residual ``[y; 0] - K x0`` of ``x0`` in this system, when the
+        caller knows it (a refit: the last solve's ``residual_vector`` less
+        the change of smoothing times its weights); else one product finds it.
     preconditioner_object : TwoLevel, optional
         A preconditioner built on ``operator`` for an earlier smoothing (a
         robust refit's): set to ``lam`` (:meth:`TwoLevel.set_smoothing`)
@@ -85,8 +89,9 @@ def solve(kernel: Kernel, centres, y, lam, settings: SolveSettings | None = None
     -------
     Solution
         ``info`` holds the split, the preconditioner's sizes, setup and solve
-        seconds, the residual history, ``constraint`` = ``|Q^T w|`` and
-        ``preconditioner_object`` (the :class:`TwoLevel` used).
+        seconds, the residual history, ``constraint`` = ``|Q^T w|``,
+        ``preconditioner_object`` (the :class:`TwoLevel` used) and
+        ``residual_vector`` (``[y; 0] - K [w; p]``, found by the last true product).
 
     Warns
     -----
@@ -147,8 +152,8 @@ def solve(kernel: Kernel, centres, y, lam, settings: SolveSettings | None = None
     bar = progress_bar(progress, total=max_iterations, desc="fast FGMRES", unit="it")
     t_solve = time.perf_counter()
     try:
-        x, its, res, history = fgmres(product, b, prec, rtol, max_iterations, restart,
-                                       lambda v: product(v, 1.0), bar, x0=x0)
+        x, its, res, history, residual = fgmres(product, b, prec, rtol, max_iterations, restart,
+                                                 lambda v: product(v, 1.0), bar, x0=x0, r0=r0)
     finally:
         if bar is not None:
             bar.close()
@@ -163,6 +168,7 @@ def solve(kernel: Kernel, centres, y, lam, settings: SolveSettings | None = None
         "constraint": float(np.abs(q.T @ w).max()) if m else 0.0,
         "converged": res <= rtol,
         "preconditioner_object": prec_a,
+        "residual_vector": residual,
     }
     if res > rtol:
         warnings.warn(
