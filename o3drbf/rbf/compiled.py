@@ -19,7 +19,7 @@ try:  # numba is a dependency, but the library still works (slower) without it
 except ImportError:  # pragma: no cover
     HAVE_NUMBA = False
 
-__all__ = ["HAVE_NUMBA", "direct_sum", "direct_sum_at_centres", "direct_matrix", "lower_single", "lower_pair", "supports", "check_sum_arrays", "table_sum", "supports_table", "KernelTable"]
+__all__ = ["HAVE_NUMBA", "direct_sum", "direct_sum_at_centres", "direct_matrix", "lower_single", "lower_pair", "lower_matrix_single", "supports", "check_sum_arrays", "table_sum", "supports_table", "KernelTable"]
 
 # kernel codes
 _MULTIORDER, _GAUSSIAN, _THINPLATE = 0, 1, 2
@@ -211,6 +211,61 @@ if HAVE_NUMBA:
             u = n - 1 - t
             if u != t:
                 squares[u] = _pair_column(code, p, x, diagonal, out, single, u)
+
+
+if HAVE_NUMBA:
+
+    @numba.njit(cache=True, inline="always")
+    def _single_kernel_column(code, p, x, diagonal, out, j):
+        out[j, j] = np.float32(_phi(code, p, 0.0) + diagonal[j])
+        for i in range(j + 1, x.shape[0]):
+            dx, dy, dz = x[i, 0] - x[j, 0], x[i, 1] - x[j, 1], x[i, 2] - x[j, 2]
+            out[i, j] = np.float32(_phi(code, p, math.sqrt(dx * dx + dy * dy + dz * dz)))
+
+    @numba.njit(cache=True, parallel=True)
+    def _matrix_lower_single(code, p, x, diagonal, out):
+        n = x.shape[0]
+        half = (n + 1) // 2
+        for t in numba.prange(half):  # columns t and n - 1 - t in one task, as in _matrix_lower
+            _single_kernel_column(code, p, x, diagonal, out, t)
+            u = n - 1 - t
+            if u != t:
+                _single_kernel_column(code, p, x, diagonal, out, u)
+
+
+def lower_matrix_single(kernel, x: np.ndarray, diagonal: np.ndarray) -> np.ndarray:
+    """The lower triangle of ``A = Phi(x, x) + diag(diagonal)`` in float32, Fortran order, upper triangle
+    uninitialised: each entry evaluated in double and rounded once, the same numbers as
+    :func:`lower_single` of :func:`lower_pair`'s double matrix, without that matrix (a quarter of the bytes
+    touched).  For a factorization that single precision serves (a preconditioner's coarse level).
+
+    Parameters
+    ----------
+    kernel : Kernel
+        One with a compiled form (:func:`supports`).
+    x : (N, 3) array_like
+        Finite points.
+    diagonal : (N,) array_like
+        Added to the diagonal.
+
+    Returns
+    -------
+    (N, N) float32 ndarray
+    """
+    if not supports(kernel):
+        raise ValueError(f"kernel {kernel.name!r} has no compiled form here; use direct_matrix's NumPy fallback")
+    code, p = _params(kernel)
+    x = np.ascontiguousarray(x, float)
+    diagonal = np.array(diagonal, dtype=float)  # a writable copy: one compiled signature
+    if x.ndim != 2 or x.shape[1] != 3:
+        raise ValueError(f"x must have shape (N, 3), got {x.shape}")
+    if diagonal.shape != (len(x),):
+        raise ValueError(f"diagonal must have shape ({len(x)},), one per point, got {diagonal.shape}")
+    if not (np.isfinite(x).all() and np.isfinite(diagonal).all()):
+        raise ValueError("x or diagonal has NaN or infinite entries; compiled kernels need finite input")
+    out = np.empty((len(x), len(x)), dtype=np.float32, order="F")
+    _matrix_lower_single(code, p, x, diagonal, out)
+    return out
 
 
 def lower_pair(kernel, x: np.ndarray, diagonal: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:

@@ -660,6 +660,36 @@ def test_a_coarse_matrix_single_precision_cannot_factor_is_factored_in_double():
     assert c.dtype == np.float32 and np.abs(low @ low.T - h).max() < 1e-6
 
 
+def test_the_coarse_factor_of_the_kernel_is_that_of_its_double_matrix(monkeypatch):
+    """coarse_matrix_factor evaluates the coarse matrix straight into single precision: the factor is the
+    one coarse_factor makes of the double matrix, bit for bit.  Where single precision's factorization
+    breaks down, the double matrix is made and factored in double (as coarse_factor does)."""
+    import scipy.linalg as sla
+
+    from o3drbf.rbf.sums import kernel_matrix
+    from o3drbf.solvers.fast import precondition
+
+    kernel = MultiOrder(10.0, 0.01)
+    c, _, lam = torus_problem(900, seed=4)
+    a = kernel_matrix(kernel, c) + np.diag(lam)
+    got = precondition.coarse_matrix_factor(kernel, c, lam)
+    assert got.dtype == np.float32
+    np.testing.assert_array_equal(np.tril(got), np.tril(precondition.coarse_factor(np.asfortranarray(a.copy()))))
+    spotrf = sla.lapack.spotrf
+    calls = []
+
+    def failing(*args, **kwargs):  # single precision "breaks down" once: the double path takes over
+        calls.append(1)
+        out = spotrf(*args, **kwargs)
+        return (out[0], 1) if len(calls) == 1 else out
+
+    monkeypatch.setattr(sla.lapack, "spotrf", failing)
+    fallback = precondition.coarse_matrix_factor(kernel, c, lam)
+    assert len(calls) == 1 and fallback.dtype == np.float32  # not tried in single again
+    want = np.tril(sla.cho_factor(a, lower=True)[0])
+    np.testing.assert_allclose(np.tril(fallback), want, rtol=0, atol=1e-6 * np.abs(want).max())
+
+
 def test_the_coarse_factor_reads_only_the_lower_triangle():
     """What lies above the diagonal of the coarse matrix is never written (its pages never touched): the
     factor neither reads it nor warns about it, whatever it holds (here 1e300 and NaN)."""

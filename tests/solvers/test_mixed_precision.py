@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from o3drbf.rbf.compiled import direct_matrix, lower_pair, lower_single
+from o3drbf.rbf.compiled import direct_matrix, lower_matrix_single, lower_pair, lower_single
 from o3drbf.rbf.kernels import MultiOrder
 from o3drbf.rbf.sums import kernel_matrix, polynomial_basis
 from o3drbf.solvers import dense
@@ -47,6 +47,21 @@ def test_lower_pair_is_the_matrix_and_its_single_copy_bit_for_bit():
     assert norm == norm_two_pass
     # and the numpy kernel: the lower triangle of Phi + diag(lambda)
     np.testing.assert_allclose(np.tril(a), np.tril(kernel_matrix(KERNEL, x, compiled=False) + np.diag(lam)), rtol=1e-12, atol=0)
+
+
+def test_lower_matrix_single_is_the_rounded_lower_triangle_bit_for_bit():
+    """Evaluated straight into float32: the same numbers as the double matrix (NumPy kernel, independent of
+    the compiled loops) plus the diagonal, rounded once."""
+    x, _, lam = problem(300)
+    single = lower_matrix_single(KERNEL, x, lam)
+    assert single.dtype == np.float32 and single.flags.f_contiguous
+    np.testing.assert_array_equal(np.tril(single), np.tril(lower_pair(KERNEL, x, lam)[1]))
+    numpy_double = kernel_matrix(KERNEL, x, compiled=False) + np.diag(lam)
+    np.testing.assert_allclose(np.tril(single), np.tril(numpy_double), rtol=1e-7, atol=0)
+    with pytest.raises(ValueError, match="diagonal must have shape"):
+        lower_matrix_single(KERNEL, x, lam[:-1])
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        lower_matrix_single(KERNEL, np.where(np.arange(300)[:, None] == 3, np.nan, x), lam)
 
 
 def test_lower_pair_refuses_bad_input_in_one_line():

@@ -152,8 +152,9 @@ def _twolevel_plan(kernel, centres, tree, lam_count, coarse_update_nnz, eps, opt
     elif mc < n:
         total += int(coarse_update_nnz * mc / n) * NNZ_BYTES
     if not nested:
-        # The coarse matrix's lower triangle in double (its upper half never touched), and the factor's in
-        # single precision while the double one is alive (double: the matrix and its factor in place).
+        # The coarse matrix's lower triangle (its upper half never touched) is evaluated and factored in single
+        # precision (2 mc^2); the plan keeps the fallback where that breaks down: the lower triangle in double,
+        # and the factor's in single while the double one is alive (double: the matrix and its factor in place).
         return int(total + (6 if COARSE_SINGLE else 12) * mc * mc)
     sub_idx = np.sort(np.random.default_rng(2).choice(n, mc, replace=False))
     sub = centres[sub_idx]

@@ -11,6 +11,7 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
+from o3drbf.rbf import compiled
 from o3drbf.rbf.sums import kernel_matrix
 from o3drbf.solvers.dense import DENSE_MAX
 from o3drbf.solvers.fast.fgmres import fgmres
@@ -19,7 +20,7 @@ from o3drbf.solvers.fast.grid import GridSum
 from o3drbf.solvers.fast.operator import fast_operator
 from o3drbf.solvers.fast.neighbours import CellList, csr_matvec, njit
 
-__all__ = ["TwoLevel", "TwoLevelSettings", "coarse_size", "second_correction", "coarse_factor", "coarse_solve", "COARSE_SINGLE",
+__all__ = ["TwoLevel", "TwoLevelSettings", "coarse_size", "second_correction", "coarse_factor", "coarse_matrix_factor", "coarse_solve", "COARSE_SINGLE",
            "COARSE_MAX"]
 
 
@@ -86,17 +87,18 @@ def _lower(a: np.ndarray, dtype) -> np.ndarray:
     return out
 
 
-def coarse_factor(a: np.ndarray) -> np.ndarray:
+def coarse_factor(a: np.ndarray, try_single: bool = True) -> np.ndarray:
     """The lower Cholesky factor of the symmetric positive definite ``a`` (its lower triangle read; it may
     be overwritten), Fortran-ordered; its upper triangle is not set.  With :data:`COARSE_SINGLE`, factored
-    and kept in single precision, or, where that breaks down, factored in double and kept in single.
+    and kept in single precision, or, where that breaks down (or ``try_single`` is False: it is known to),
+    factored in double and kept in single.
 
     Raises
     ------
     numpy.linalg.LinAlgError
         ``a`` is not positive definite.
     """
-    if COARSE_SINGLE:
+    if COARSE_SINGLE and try_single:
         c, info = sla.lapack.spotrf(_lower(a, np.float32), lower=1, overwrite_a=1, clean=0)
         if info == 0:
             return c
@@ -108,6 +110,24 @@ def coarse_factor(a: np.ndarray) -> np.ndarray:
     else:
         c, _ = sla.cho_factor(a, lower=True, overwrite_a=True, check_finite=False)
     return _lower(c, np.float32) if COARSE_SINGLE else np.asfortranarray(c)
+
+
+def coarse_matrix_factor(kernel, x: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    """:func:`coarse_factor` of ``Phi(x, x) + diag(lam)``.  With :data:`COARSE_SINGLE` and a kernel with a
+    compiled form, the lower triangle is evaluated straight into single precision
+    (:func:`o3drbf.rbf.compiled.lower_matrix_single`: the same numbers as the double matrix's rounded
+    copy) and factored in place, so no double matrix is made; it is made only where that factorization
+    breaks down."""
+    tried = False
+    if COARSE_SINGLE and compiled.supports(kernel):
+        c, info = sla.lapack.spotrf(compiled.lower_matrix_single(kernel, x, lam), lower=1, overwrite_a=1, clean=0)
+        if info == 0:
+            return c
+        del c
+        tried = True
+    acc = kernel_matrix(kernel, x, lower=True)  # the lower triangle: all the factorization reads
+    acc[np.diag_indices(len(x))] += lam
+    return coarse_factor(acc, try_single=not tried)
 
 
 def coarse_solve(factor: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -339,10 +359,7 @@ class TwoLevel:
             self._sub, self._sub_lam, self._sub_eps = sub, self.lam[self.coarse], nested_eps
             self._sub_rtol = float(nested_rtol)
         else:
-            acc = kernel_matrix(kernel, xc, lower=True)  # the lower triangle: all the factorization reads
-            acc[np.diag_indices(len(xc))] += self.lam[self.coarse]
-            self.factor = coarse_factor(acc)
-            del acc
+            self.factor = coarse_matrix_factor(kernel, xc, self.lam[self.coarse])
         self.exact = len(self.coarse) == n
         self.block = None
         self.update = None
@@ -390,9 +407,7 @@ class TwoLevel:
             self.inner_level.set_smoothing(self._sub_lam)
         else:
             self.factor = None  # (its memory freed before the new one)
-            acc = kernel_matrix(self.fast.kernel, self.fast.centres[self.coarse], lower=True)
-            acc[np.diag_indices(len(self.coarse))] += lam[self.coarse]
-            self.factor = coarse_factor(acc)
+            self.factor = coarse_matrix_factor(self.fast.kernel, self.fast.centres[self.coarse], lam[self.coarse])
 
     def _coarse_to_fine(self, zc):
         """(Phi + Lambda)[:, C] z_C."""
