@@ -266,7 +266,7 @@ def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = F
     constraints = Constraints(c.points, c.values, params.smoothing, c.kind)
     # One factorization for the first fit and every robust refit (Woodbury updates of the dense one).
     session = Refitter(params.kernel, constraints.points, constraints.values, constraints.smoothing, method=options.solver,
-                       checked=checked, progress=progress)
+                       checked=checked, refits=options.robust, progress=progress)
     # The residual scale never falls below half a constraint spacing, so
     # clean data are not reweighted (no refit when no residual reaches
     # Tukey's c times the scale).

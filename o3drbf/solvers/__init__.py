@@ -304,11 +304,12 @@ class Refitter:
     (:class:`o3drbf.solvers.dense.DenseFactor`): a robust refit that
     down-weights a few constraints costs a few triangular solves, not a new
     factorization.  When it is fast, the products are built once for all
-    the centres and every refit starts FGMRES from the previous solution;
-    from the second refit on, it is preconditioned by the first refit's
+    the centres and every refit starts FGMRES from the previous solution
+    (and its residual); it is preconditioned by the last solve's
     preconditioner set to the new smoothing
-    (:meth:`o3drbf.solvers.fast.TwoLevel.set_smoothing`: the first solve's is
-    freed, as most fits have no refit, so that they hold no more memory); a
+    (:meth:`o3drbf.solvers.fast.TwoLevel.set_smoothing`).  The first solve's
+    is kept for them only with ``refits`` (else freed: a fit without refits
+    holds no more memory, and the first refit builds its own); a
     left-out constraint keeps its centre with the smoothing
     ``DROPPED_SMOOTHING`` times the largest finite one (its weight comes out
     ~1e-6 of its neighbours' and is then removed).  Otherwise (the iterative
@@ -329,13 +330,17 @@ class Refitter:
     checked : bool
         The caller has already checked that a fast solve fits in memory
         (:func:`o3drbf.solvers.fast.check_memory`); not checked again.
+    refits : bool
+        Refits may follow the first solve (a robust fit): a fast solve keeps
+        its preconditioner for them from the first solve on.
     **options
         Passed to :func:`solve` (``progress``, ``rtol``, ``memory_limit``, ...).
     """
 
     def __init__(self, kernel: Kernel, centres, values, smoothing=0.0, method: str = "auto", max_changed: int | None = None,
-                 checked: bool = False, **options):
+                 checked: bool = False, refits: bool = False, **options):
         self.kernel = kernel
+        self.refits = bool(refits)
         self.centres, self.values, self.smoothing = system_inputs(centres, values, smoothing, method)
         n = len(self.centres)
         self.options = options
@@ -417,7 +422,7 @@ class Refitter:
         big = DROPPED_SMOOTHING * max(float(finite.max()) if finite.size else 1.0, 1e-12)
         sol = solve_fast(self.kernel, self.centres, self.values, np.where(keep, lam, big), o.get("rtol"), o.get("max_iterations", 1000),
                          o.get("progress", False), o.get("backend", "auto"), operator=self.operator, start=self.start)
-        if "x0" not in self.start:  # the first solve: no refit may follow, so its preconditioner's memory is freed
+        if "x0" not in self.start and not self.refits:  # the first solve, and no refit expected: its preconditioner's memory freed
             self.start.pop("preconditioner", None)
         self.start["x0"] = np.concatenate([sol.weights, sol.poly])
         if keep.all():

@@ -215,6 +215,37 @@ def test_fast_refits_reuse_the_first_refits_preconditioner_set_to_the_new_smooth
     assert "preconditioner_object" not in solve(kernel, x, y, lam0, method="fast").info and op.n == len(x)
 
 
+def test_a_refitter_expecting_refits_keeps_the_first_preconditioner_for_them():
+    """With ``refits`` the first solve's preconditioner is kept and the first refit sets it to its smoothing
+    (no new one built); the refit still solves its system (against a dense solve of the kept constraints)."""
+    from o3drbf.rbf.sums import kernel_sum
+    from o3drbf.solvers.fast import precondition
+
+    kernel = MultiOrder(10, 0.01)
+    x, y, lam0 = problem(n=8000, seed=2)
+    lam0 = np.where(y == 0, 1e-5, 2.0)
+    session = Refitter(kernel, x, y, lam0, method="fast", refits=True)
+    session.solve()
+    prec = session.start["preconditioner"]
+    built = []
+    init = precondition.TwoLevel.__init__
+    precondition.TwoLevel.__init__ = lambda self, *a, **k: built.append(1) or init(self, *a, **k)
+    try:
+        lam = lam0.copy()
+        lam[[10, 11, 400]] *= 1e3
+        lam[[5, 2000]] = np.inf
+        keep, sol = session.solve(lam)
+    finally:
+        precondition.TwoLevel.__init__ = init
+    assert session.start["preconditioner"] is prec and not built
+    dense = solve(kernel, x[keep], y[keep], lam[keep], method="dense")
+    g = np.random.default_rng(5).uniform(-0.9, 0.9, (300, 3))
+    q = polynomial_basis(g, kernel.polynomial_degree)
+    f_fast = kernel_sum(kernel, x[keep], sol.weights, g) + q @ sol.poly
+    f_dense = kernel_sum(kernel, x[keep], dense.weights, g) + q @ dense.poly
+    assert np.abs(f_fast - f_dense).max() < 1e-3 * np.abs(f_dense).max()
+
+
 def test_fast_refits_start_from_the_last_residual_moved_by_the_smoothing_change(monkeypatch):
     """A refit's FGMRES starts from the last solve's true residual less the smoothing's change times its
     weights, without a product: that is the start's residual in the new system (checked against direct
