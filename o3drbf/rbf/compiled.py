@@ -453,12 +453,14 @@ def direct_sum_at_centres(kernel, centres, weights, index) -> tuple[np.ndarray, 
     return np.ascontiguousarray(total[:, 0]), np.ascontiguousarray(total[:, 1:])
 
 
-def direct_matrix(kernel, x, y, lower: bool = False):
+def direct_matrix(kernel, x, y, lower: bool = False, dtype=np.float64):
     """Compiled dense kernel matrix, Fortran order.
 
     ``lower=True`` (``y`` must be ``x``) fills only the lower triangle, the
     diagonal included, and leaves the rest uninitialised: half the kernel
-    evaluations, and all a lower Cholesky factorization reads.
+    evaluations, and all a lower Cholesky factorization reads.  ``dtype``
+    float32 stores each entry, evaluated in double, rounded once (not with
+    ``lower``).
     """
     code, p = _params(kernel)
     x = np.ascontiguousarray(x, float)
@@ -468,7 +470,10 @@ def direct_matrix(kernel, x, y, lower: bool = False):
             raise ValueError(f"{name} must have shape (N, 3), got {a.shape}")
         if not np.isfinite(a).all():
             raise ValueError(f"{name} has NaN or infinite entries; compiled kernels need finite input")
-    out = np.empty((len(x), len(y)), order="F")
+    dtype = np.dtype(dtype)
+    if dtype not in (np.float64, np.float32) or (lower and dtype != np.float64):
+        raise ValueError(f"dtype must be float64, or float32 without lower=True; got {dtype} (lower={lower})")
+    out = np.empty((len(x), len(y)), dtype=dtype, order="F")
     if lower:
         if x.shape != y.shape or not np.array_equal(x, y):
             raise ValueError("lower=True needs y = x (a symmetric matrix)")

@@ -34,7 +34,7 @@ def polynomial_basis(points: np.ndarray, degree: int) -> np.ndarray:
 
 def kernel_matrix(
     kernel: Kernel, x: np.ndarray, y: np.ndarray | None = None, order: str = "F", compiled: bool = True,
-    lower: bool = False,
+    lower: bool = False, dtype=np.float64,
 ) -> np.ndarray:
     """Phi_ij = phi(|x_i - y_j|) as a dense array (Fortran order by default,
     so LAPACK can factor it in place).
@@ -42,18 +42,20 @@ def kernel_matrix(
     ``lower=True`` (with ``y`` omitted) promises the caller reads only the
     lower triangle (e.g. a lower Cholesky factorization): the compiled path
     then evaluates only that half and leaves the upper triangle uninitialised.
+    ``dtype=np.float32`` stores the entries, evaluated in double, in single
+    precision (half the memory; for a preconditioner's products).
     """
     x = np.asarray(x, dtype=float)
     if lower and y is not None:
         raise ValueError("lower=True is for the symmetric matrix of x with itself; omit y")
     y = x if y is None else np.asarray(y, dtype=float)
-    if compiled and _direct.supports(kernel):
+    if compiled and _direct.supports(kernel) and not (lower and np.dtype(dtype) != np.float64):
         if order == "F":
-            return _direct.direct_matrix(kernel, x, y, lower=lower)
+            return _direct.direct_matrix(kernel, x, y, lower=lower, dtype=dtype)
         if not lower:  # phi(|x_i - y_j|) is symmetric in the pair: the Fortran (y, x) matrix's transpose
-            return _direct.direct_matrix(kernel, y, x).T
+            return _direct.direct_matrix(kernel, y, x, dtype=dtype).T
     r = cdist(x, y)
-    out = kernel(r)
+    out = kernel(r).astype(dtype, copy=False)
     return np.asfortranarray(out) if order == "F" else np.ascontiguousarray(out)
 
 

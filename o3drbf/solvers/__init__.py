@@ -224,8 +224,8 @@ def solve_fast(kernel: Kernel, centres, y, lam, rtol: float | None = None, max_i
         x0 = np.concatenate([x0[:n][order], x0[n:]])
         r0 = _moved_residual((start or {}).get("residual"), x0, lam[order], fast.product_tolerance(rtol))
     sol = fast.solve(kernel, centres[order], y[order], lam[order], rtol=rtol,
-                     max_iterations=min(max_iterations, 200), progress=progress, backend=backend, operator=operator, x0=x0, r0=r0,
-                     preconditioner_object=(start or {}).get("preconditioner"))
+                     max_iterations=min(max_iterations, 200), progress=progress, backend=backend, operator=operator,
+                     x0=x0 if r0 is None else (x0, r0), preconditioner_object=(start or {}).get("preconditioner"))
     last = (sol.info.get("residual_vector"), np.concatenate([sol.weights, sol.poly]), lam[order], sol.info["eps"])
     weights = np.empty_like(sol.weights)
     weights[order] = sol.weights

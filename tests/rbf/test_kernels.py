@@ -184,3 +184,22 @@ def test_compiled_kernel_matrix_is_the_numpy_one_in_either_order(kernel, order, 
     got = kernel_matrix(kernel, x, y, order=order)
     assert got.shape == (70, 40) and got.flags[order + "_CONTIGUOUS"]
     np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-13 * np.abs(ref).max())
+
+
+@pytest.mark.parametrize("order", ["F", "C"])
+def test_a_single_precision_kernel_matrix_is_the_double_one_rounded_once(order, rng):
+    from o3drbf.rbf.sums import kernel_matrix
+
+    kernel = MultiOrder(10, 0.01)
+    x = rng.uniform(-1, 1, (70, 3))
+    y = rng.uniform(-1, 1, (40, 3))
+    y[0] = x[0]
+    double = kernel_matrix(kernel, x, y, order=order)
+    single = kernel_matrix(kernel, x, y, order=order, dtype=np.float32)
+    assert single.dtype == np.float32 and single.flags[order + "_CONTIGUOUS"]
+    np.testing.assert_array_equal(single, double.astype(np.float32))
+    np.testing.assert_array_equal(kernel_matrix(kernel, x, y, compiled=False, dtype=np.float32), single)
+    with pytest.raises(ValueError, match="dtype must be float64"):
+        from o3drbf.rbf.compiled import direct_matrix
+
+        direct_matrix(kernel, x, x, lower=True, dtype=np.float32)

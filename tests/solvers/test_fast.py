@@ -690,6 +690,26 @@ def test_the_coarse_factor_of_the_kernel_is_that_of_its_double_matrix(monkeypatc
     np.testing.assert_allclose(np.tril(fallback), want, rtol=0, atol=1e-6 * np.abs(want).max())
 
 
+def test_the_coarse_to_fine_block_is_stored_in_single_precision_and_updates_as_the_double_one():
+    """The stored (N, |C|) block is float32 (half the bytes against the dense budget); its coarse-to-fine
+    update agrees with the double matrix's product (NumPy kernel) to single precision."""
+    from o3drbf.rbf.sums import kernel_matrix
+    from o3drbf.solvers.fast.precondition import TwoLevel
+
+    kernel = MultiOrder(10.0, 0.01)
+    c, _, lam = torus_problem(4000, seed=5)
+    p = TwoLevel(DenseSum(kernel, c), lam, exact_below=0, max_coarse=400, cap_floor=400)
+    assert p.block is not None and p.block.dtype == np.float32 and p.info["coarse_update"] == "dense block"
+    zc = np.random.default_rng(1).normal(size=len(p.coarse))
+    want = kernel_matrix(kernel, c, c[p.coarse], compiled=False) @ zc
+    want[p.coarse] += lam[p.coarse] * zc
+    got = p._coarse_to_fine(zc)
+    assert got.dtype == np.float64
+    assert np.abs(got - want).max() <= 1e-5 * np.abs(want).max()
+    small = TwoLevel(DenseSum(kernel, c), lam, exact_below=0, max_coarse=400, cap_floor=400, dense_budget=4 * 4000 * 400 - 1)
+    assert small.block is None and small.info["coarse_update"] == "fast sum"
+
+
 def test_the_coarse_factor_reads_only_the_lower_triangle():
     """What lies above the diagonal of the coarse matrix is never written (its pages never touched): the
     factor neither reads it nor warns about it, whatever it holds (here 1e300 and NaN)."""

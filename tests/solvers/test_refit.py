@@ -268,7 +268,7 @@ def test_fast_refits_start_from_the_last_residual_moved_by_the_smoothing_change(
 
     starts = []
     fgmres = solver.fgmres
-    monkeypatch.setattr(solver, "fgmres", lambda *a, **k: starts.append((k["x0"], k["r0"])) or fgmres(*a, **k))
+    monkeypatch.setattr(solver, "fgmres", lambda *a, **k: starts.append(k["start"]) or fgmres(*a, **k))
     lam = lam0.copy()
     lam[[10, 11, 400]] *= 1e3
     lam[[5, 2000]] = np.inf

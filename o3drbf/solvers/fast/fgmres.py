@@ -15,21 +15,22 @@ __all__ = ["fgmres", "RESTART"]
 RESTART = 100
 
 
-def fgmres(matvec, b, prec, rtol, max_iterations, restart, true_matvec, bar=None, final=True, x0=None, r0=None):
+def fgmres(matvec, b, prec, rtol, max_iterations, restart, true_matvec, bar=None, final=True, start=None):
     """Flexible GMRES (right preconditioned), restarted from the true residual.
 
     ``matvec(x, rel)`` may be inexact with relative accuracy ``rel`` (relaxed
     as the residual falls); ``true_matvec`` is the accurate product used at
-    every restart; ``x0`` a starting guess (default 0) and ``r0`` its residual
-    ``b - true_matvec(x0)`` when the caller knows it (else one product finds it).
-    Returns x, iterations, true relative residual, history, and the true
-    residual vector ``b - true_matvec(x)`` (None after one cycle with ``final``
-    False, which does not compute it).
+    every restart; ``start`` a starting guess ``(x0, r0)`` (default 0), ``r0``
+    its residual ``b - true_matvec(x0)`` when the caller knows it, else None
+    (one product finds it).  Returns x, iterations, true relative residual,
+    history, and the true residual vector ``b - true_matvec(x)`` (None after
+    one cycle with ``final`` False, which does not compute it).
     """
     n = len(b)
     bn = float(np.linalg.norm(b))
     if bn == 0:
         return np.zeros(n), 0, 0.0, [], np.zeros(n)
+    x0, r0 = (None, None) if start is None else start
     if x0 is None:
         x = np.zeros(n)
         r = b.copy()

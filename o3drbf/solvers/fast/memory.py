@@ -141,8 +141,8 @@ def _twolevel_plan(kernel, centres, tree, lam_count, coarse_update_nnz, eps, opt
     n = len(centres)
     total = (4 + 4) * n * (st.neighbours + 1) + 64 * n  # the tapered near matrix: a float32 entry and an int32 column each (built in place)
     mc, nested = coarse_size(n, st)
-    if mc < n and 8 * n * mc <= st.dense_budget:
-        total += 8 * n * mc
+    if mc < n and 4 * n * mc <= st.dense_budget:  # the coarse-to-fine block, in single precision
+        total += 4 * n * mc
     elif 64 <= mc <= SUBSET_SHARE * n:  # the coarse centres' own grid sum, at every centre (GridSum.from_subset)
         sub = centres[np.sort(np.random.default_rng(2).choice(n, mc, replace=False))]
         tol = served_tolerance(st.eps, eps)  # as GridSum.from_subset asks it

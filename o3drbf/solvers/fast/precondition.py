@@ -363,8 +363,8 @@ class TwoLevel:
         self.exact = len(self.coarse) == n
         self.block = None
         self.update = None
-        if not self.exact and n * len(self.coarse) * 8 <= dense_budget:
-            self.block = kernel_matrix(kernel, x, xc, order="C")
+        if not self.exact and n * len(self.coarse) * 4 <= dense_budget:  # in single precision, like the coarse factor
+            self.block = kernel_matrix(kernel, x, xc, order="C", dtype=np.float32)
         elif not self.exact:
             self.update = fast.from_subset(self.coarse)
         self.post_rows = None
@@ -412,7 +412,7 @@ class TwoLevel:
     def _coarse_to_fine(self, zc):
         """(Phi + Lambda)[:, C] z_C."""
         if self.block is not None:
-            out = self.block @ zc
+            out = (self.block @ zc.astype(np.float32)).astype(float)
         else:
             out = self.update(zc, self.eps)
         out[self.coarse] += self.lam[self.coarse] * zc

@@ -39,7 +39,7 @@ class SolveSettings:
 
 @reused_work()  # the grids' potentials share one set of work arrays from one product to the next
 def solve(kernel: Kernel, centres, y, lam, settings: SolveSettings | None = None, *, progress: bool = False, operator: FastSum | None = None,
-          x0=None, r0=None, preconditioner_object: TwoLevel | None = None, **overrides) -> Solution:
+          x0=None, preconditioner_object: TwoLevel | None = None, **overrides) -> Solution:
     """Solve ``[Phi + diag(lam), Q; Q^T, 0] [w; p] = [y; 0]`` with fast products.
 
     Parameters
@@ -73,13 +73,12 @@ def solve(kernel: Kernel, centres, y, lam, settings: SolveSettings | None = None
         interface, e.g. a dense stand-in for testing the preconditioner).
     backend : {"auto", "grid", "fmm"}
         The product when ``operator`` is None (:func:`fast_operator`).
-    x0 : (N + M,) array, optional
+    x0 : (N + M,) array or a pair of them, optional
         Starting guess ``[w; p]`` (e.g. the solution of a nearby system: a
-        robust refit starts from the fit before it).
-    r0 : (N + M,) array, optional
-        The residual ``[y; 0] - K x0`` of ``x0`` in this system, when the
-        caller knows it (a refit: the last solve's ``residual_vector`` less
-        the change of smoothing times its weights); else one product finds it.
+        robust refit starts from the fit before it), or that guess and its
+        residual ``[y; 0] - K x0`` in this system when the caller knows it (a
+        refit: the last solve's ``residual_vector`` less the change of
+        smoothing times its weights); else one product finds it.
     preconditioner_object : TwoLevel, optional
         A preconditioner built on ``operator`` for an earlier smoothing (a
         robust refit's): set to ``lam`` (:meth:`TwoLevel.set_smoothing`)
@@ -153,7 +152,7 @@ def solve(kernel: Kernel, centres, y, lam, settings: SolveSettings | None = None
     t_solve = time.perf_counter()
     try:
         x, its, res, history, residual = fgmres(product, b, prec, rtol, max_iterations, restart,
-                                                 lambda v: product(v, 1.0), bar, x0=x0, r0=r0)
+                                                 lambda v: product(v, 1.0), bar, start=x0 if isinstance(x0, tuple) else (x0, None))
     finally:
         if bar is not None:
             bar.close()
