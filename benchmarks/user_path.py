@@ -12,6 +12,9 @@ Cases
 - ``scan 27k``: three range scans 120 degrees apart (320 x 240 pixels) of the Stanford
   bunny (a torus mesh when ``../shared/data`` is absent), with their cameras, as an
   o3drbf scan ``.json``; defaults.
+- ``noisy scan 27k`` (not with ``--quick``): the same scans with noise along the rays (0.5 % of the mesh's
+  diagonal) and 5 % spurious returns in the cameras' free space: the robust path at a
+  scan's size (outliers removed, constraints denoised, reweighted refits).
 - ``torus 90k --surface-count 30000``, ``torus 300k --surface-count 100000``
   (not with ``--quick``); ``torus 900k --surface-count 300000`` and
   ``torus 1M --all-points`` with ``--large``.
@@ -117,6 +120,9 @@ def make_inputs(folder: Path, size: str, only: str | None = None) -> list[dict]:
     if wanted("scan 27k"):
         scan, raw = make_scan(folder)
         cases.append({"name": "scan 27k", "input": scan, "points": raw, "args": []})
+    if size != "quick" and wanted("noisy scan 27k"):
+        scan, raw = make_scan(folder, noise=0.005, outliers=0.05, stem="noisyscan27k")
+        cases.append({"name": "noisy scan 27k", "input": scan, "points": raw, "args": []})
     sizes = {"quick": (), "full": ((90000, 30000), (300000, 100000)),
              "large": ((90000, 30000), (300000, 100000), (900000, 300000), (1000000, None))}[size]
     for total, count in sizes:
@@ -151,8 +157,11 @@ def noisy_torus(total: int, noise: float = 0.01, strays: float = 0.03, seed: int
     return p, n
 
 
-def make_scan(folder: Path):
-    """Three range scans 120 degrees apart with cameras: (scan .json, raw points .ply + each point's scanner .npy)."""
+def make_scan(folder: Path, noise: float = 0.0, outliers: float = 0.0, stem: str = "scan27k"):
+    """Three range scans 120 degrees apart with cameras: (scan .json, raw points .ply + each point's scanner .npy).
+
+    ``noise``: Gaussian noise along each ray, as a fraction of the mesh's bounding-box diagonal;
+    ``outliers``: the fraction of spurious returns in the cameras' free space (:func:`range_scans`)."""
     import open3d as o3d
 
     from o3drbf.synthetic.scans import range_scans, write_scan_json
@@ -164,9 +173,11 @@ def make_scan(folder: Path):
         mesh = o3d.geometry.TriangleMesh.create_torus(torus_radius=0.7, tube_radius=0.25, radial_resolution=60,
                                                       tubular_resolution=30)
         up = (0.0, 0.0, 1.0)
-    points, owner, cams = range_scans(mesh, n_views=3, elevation=20.0, up=up, width=320, height=240, seed=0)
-    path = write_scan_json(folder / "scan27k.json", points, cams, point_camera=owner)
-    raw = folder / "scan27k_points.ply"
+    diagonal = float(np.linalg.norm(mesh.get_max_bound() - mesh.get_min_bound()))
+    points, owner, cams = range_scans(mesh, n_views=3, elevation=20.0, up=up, width=320, height=240, seed=0,
+                                      noise=noise * diagonal, outliers=outliers)
+    path = write_scan_json(folder / f"{stem}.json", points, cams, point_camera=owner)
+    raw = folder / f"{stem}_points.ply"
     o3d.io.write_point_cloud(str(raw), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)))
     centres = np.array([c.center for c in cams])[np.maximum(owner, 0)]
     np.save(raw.with_suffix(".scanners.npy"), centres)
