@@ -233,6 +233,23 @@ if HAVE_NUMBA:
                 _single_kernel_column(code, p, x, diagonal, out, u)
 
 
+def _lower_inputs(kernel, x, diagonal):
+    """``(code, parameters, x, diagonal)`` for the compiled lower-triangle builders, checked: a kernel with a
+    compiled form, (N, 3) finite points, N finite diagonal values."""
+    if not supports(kernel):
+        raise ValueError(f"kernel {kernel.name!r} has no compiled form here; use direct_matrix's NumPy fallback and lower_single")
+    code, p = _params(kernel)
+    x = np.ascontiguousarray(x, float)
+    diagonal = np.array(diagonal, dtype=float)  # a writable copy: one compiled signature (a read-only view would be another)
+    if x.ndim != 2 or x.shape[1] != 3:
+        raise ValueError(f"x must have shape (N, 3), got {x.shape}")
+    if diagonal.shape != (len(x),):
+        raise ValueError(f"diagonal must have shape ({len(x)},), one per point, got {diagonal.shape}")
+    if not (np.isfinite(x).all() and np.isfinite(diagonal).all()):
+        raise ValueError("x or diagonal has NaN or infinite entries; compiled kernels need finite input")
+    return code, p, x, diagonal
+
+
 def lower_matrix_single(kernel, x: np.ndarray, diagonal: np.ndarray) -> np.ndarray:
     """The lower triangle of ``A = Phi(x, x) + diag(diagonal)`` in float32, Fortran order, upper triangle
     uninitialised: each entry evaluated in double and rounded once, the same numbers as
@@ -241,28 +258,14 @@ def lower_matrix_single(kernel, x: np.ndarray, diagonal: np.ndarray) -> np.ndarr
 
     Parameters
     ----------
-    kernel : Kernel
-        One with a compiled form (:func:`supports`).
-    x : (N, 3) array_like
-        Finite points.
-    diagonal : (N,) array_like
-        Added to the diagonal.
+    kernel, x, diagonal
+        As for :func:`lower_pair`.
 
     Returns
     -------
     (N, N) float32 ndarray
     """
-    if not supports(kernel):
-        raise ValueError(f"kernel {kernel.name!r} has no compiled form here; use direct_matrix's NumPy fallback")
-    code, p = _params(kernel)
-    x = np.ascontiguousarray(x, float)
-    diagonal = np.array(diagonal, dtype=float)  # a writable copy: one compiled signature
-    if x.ndim != 2 or x.shape[1] != 3:
-        raise ValueError(f"x must have shape (N, 3), got {x.shape}")
-    if diagonal.shape != (len(x),):
-        raise ValueError(f"diagonal must have shape ({len(x)},), one per point, got {diagonal.shape}")
-    if not (np.isfinite(x).all() and np.isfinite(diagonal).all()):
-        raise ValueError("x or diagonal has NaN or infinite entries; compiled kernels need finite input")
+    code, p, x, diagonal = _lower_inputs(kernel, x, diagonal)
     out = np.empty((len(x), len(x)), dtype=np.float32, order="F")
     _matrix_lower_single(code, p, x, diagonal, out)
     return out
@@ -293,17 +296,7 @@ def lower_pair(kernel, x: np.ndarray, diagonal: np.ndarray) -> tuple[np.ndarray,
     frobenius : float
         ``||A||_F`` of the symmetric matrix (off-diagonal entries counted twice).
     """
-    if not supports(kernel):
-        raise ValueError(f"kernel {kernel.name!r} has no compiled form here; use direct_matrix's NumPy fallback and lower_single")
-    code, p = _params(kernel)
-    x = np.ascontiguousarray(x, float)
-    diagonal = np.array(diagonal, dtype=float)  # a writable copy: one compiled signature (a read-only view would be another)
-    if x.ndim != 2 or x.shape[1] != 3:
-        raise ValueError(f"x must have shape (N, 3), got {x.shape}")
-    if diagonal.shape != (len(x),):
-        raise ValueError(f"diagonal must have shape ({len(x)},), one per point, got {diagonal.shape}")
-    if not (np.isfinite(x).all() and np.isfinite(diagonal).all()):
-        raise ValueError("x or diagonal has NaN or infinite entries; compiled kernels need finite input")
+    code, p, x, diagonal = _lower_inputs(kernel, x, diagonal)
     out = np.empty((len(x), len(x)), order="F")
     single = np.empty((len(x), len(x)), dtype=np.float32, order="F")
     squares = np.zeros(len(x))

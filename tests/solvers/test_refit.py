@@ -109,9 +109,20 @@ def test_robust_refits_by_update_equal_refits_by_fresh_fits():
     assert radial_error(updated[0], pts) == pytest.approx(radial_error(fresh[0], pts), rel=1e-6)
 
 
-def test_fast_refits_start_from_the_previous_solution_and_agree_with_a_dense_solve():
+def assert_matches_dense(kernel, x, y, lam, sol):
+    """The fitted function of ``sol`` against a dense solve of the same system (independent: Cholesky, no
+    fast products), at 300 points of the box, to 1e-3 of its largest value."""
     from o3drbf.rbf.sums import kernel_sum
 
+    dense = solve(kernel, x, y, lam, method="dense")
+    g = np.random.default_rng(5).uniform(-0.9, 0.9, (300, 3))
+    q = polynomial_basis(g, kernel.polynomial_degree)
+    f_fast = kernel_sum(kernel, x, sol.weights, g) + q @ sol.poly
+    f_dense = kernel_sum(kernel, x, dense.weights, g) + q @ dense.poly
+    assert np.abs(f_fast - f_dense).max() < 1e-3 * np.abs(f_dense).max()
+
+
+def test_fast_refits_start_from_the_previous_solution_and_agree_with_a_dense_solve():
     kernel = MultiOrder(10, 0.01)
     x, y, lam0 = problem(n=8000, seed=2)  # above the preconditioner's exact coarse level (6,000)
     lam0 = np.where(y == 0, 1e-5, 2.0)
@@ -126,12 +137,7 @@ def test_fast_refits_start_from_the_previous_solution_and_agree_with_a_dense_sol
     print(f"fast iterations: first {first.iterations}, warm refit {sol.iterations}, cold solve of the refit {cold.iterations}")
     assert sol.iterations <= 0.6 * cold.iterations  # measured 13 vs 32 (31 without the start)
     # the fitted function against a dense solve of the kept system (independent: Cholesky, no fast products)
-    dense = solve(kernel, x[keep], y[keep], lam[keep], method="dense")
-    g = np.random.default_rng(5).uniform(-0.9, 0.9, (300, 3))
-    q = polynomial_basis(g, kernel.polynomial_degree)
-    f_fast = kernel_sum(kernel, x[keep], sol.weights, g) + q @ sol.poly
-    f_dense = kernel_sum(kernel, x[keep], dense.weights, g) + q @ dense.poly
-    assert np.abs(f_fast - f_dense).max() < 1e-3 * np.abs(f_dense).max()
+    assert_matches_dense(kernel, x[keep], y[keep], lam[keep], sol)
 
 
 def test_memory_limits_are_checked_before_anything_is_built():
@@ -218,7 +224,6 @@ def test_fast_refits_reuse_the_first_refits_preconditioner_set_to_the_new_smooth
 def test_a_refitter_expecting_refits_keeps_the_first_preconditioner_for_them():
     """With ``refits`` the first solve's preconditioner is kept and the first refit sets it to its smoothing
     (no new one built); the refit still solves its system (against a dense solve of the kept constraints)."""
-    from o3drbf.rbf.sums import kernel_sum
     from o3drbf.solvers.fast import precondition
 
     kernel = MultiOrder(10, 0.01)
@@ -238,12 +243,7 @@ def test_a_refitter_expecting_refits_keeps_the_first_preconditioner_for_them():
     finally:
         precondition.TwoLevel.__init__ = init
     assert session.start["preconditioner"] is prec and not built
-    dense = solve(kernel, x[keep], y[keep], lam[keep], method="dense")
-    g = np.random.default_rng(5).uniform(-0.9, 0.9, (300, 3))
-    q = polynomial_basis(g, kernel.polynomial_degree)
-    f_fast = kernel_sum(kernel, x[keep], sol.weights, g) + q @ sol.poly
-    f_dense = kernel_sum(kernel, x[keep], dense.weights, g) + q @ dense.poly
-    assert np.abs(f_fast - f_dense).max() < 1e-3 * np.abs(f_dense).max()
+    assert_matches_dense(kernel, x[keep], y[keep], lam[keep], sol)
 
 
 def test_fast_refits_start_from_the_last_residual_moved_by_the_smoothing_change(monkeypatch):
