@@ -83,7 +83,7 @@ def grid_for(bounds, resolution: int | None = 128, voxel_size: float | None = No
     return origin, h, tuple(int(c) + 1 for c in cells)
 
 
-def mesh_evaluator(surface, eps: float = MESH_EPS, min_centres: int = GRID_EVALUATION_MIN):
+def mesh_evaluator(surface, eps: float = MESH_EPS, min_centres: int = GRID_EVALUATION_MIN, shared=None):
     """The fastest adequate ``(box points (M, 3), gradient) -> f [, grad f]`` for meshing.
 
     One grid sum (:class:`o3drbf.solvers.fast.GridSum`) for values and
@@ -91,7 +91,7 @@ def mesh_evaluator(surface, eps: float = MESH_EPS, min_centres: int = GRID_EVALU
     for normals): the surface's own (from
     :func:`o3drbf.solvers.fast.make_evaluator`), else, for the multi-order
     kernel with at least ``min_centres`` centres, a new one at relative
-    tolerance ``eps``.  Otherwise the surface's own evaluator, or the direct
+    tolerance ``eps`` (or ``shared``'s).  Otherwise the surface's own evaluator, or the direct
     sum from cubic tables (:meth:`ImplicitSurface.evaluate_box` with
     ``approximate``).  A grid sum is kept in ``surface.meshing`` and
     returned again by the next call with the same ``eps`` and ``min_centres``.
@@ -103,6 +103,13 @@ def mesh_evaluator(surface, eps: float = MESH_EPS, min_centres: int = GRID_EVALU
         Tolerance of the grid sum.
     min_centres : int
         Fewest centres for which the grid sum is used.
+    shared : (callable, array of int), optional
+        Another surface's meshing evaluator of kind "grid" and the places of
+        this surface's centres among its grid sum's (a robust refit of the
+        same constraints, some left out: ``numpy.flatnonzero(keep)``).  Where
+        that grid sum holds exactly these centres there and was made with the
+        same ``eps`` and ``min_centres``, it serves this surface too, with
+        this surface's weights (zero at the centres it lacks): no new grid sum.
 
     Returns
     -------
@@ -128,6 +135,17 @@ def mesh_evaluator(surface, eps: float = MESH_EPS, min_centres: int = GRID_EVALU
     op = getattr(own, "fast_sum", None)
     if own is not None and not (isinstance(op, fast.GridSum) and op.n == len(surface.centres)):
         return table
+    weights = None  # this surface's (below), or over the shared grid sum's centres
+    if op is None and shared is not None:
+        other, index = shared
+        sop = getattr(other, "operator", None)
+        index = np.asarray(index, dtype=np.int64)
+        if (getattr(other, "kind", None) == "grid" and getattr(other, "settings", None) == (eps, min_centres)
+                and isinstance(sop, fast.GridSum) and sop.kernel == kernel and index.shape == (len(surface.centres),)
+                and np.array_equal(sop.centres[index], surface.centres)):
+            op = sop
+            weights = np.zeros(op.n)
+            weights[index] = surface.weights
     if op is None:  # no evaluator of its own
         from o3drbf.rbf.kernels import MultiOrder
 
@@ -140,7 +158,7 @@ def mesh_evaluator(surface, eps: float = MESH_EPS, min_centres: int = GRID_EVALU
             return table
     from o3drbf.rbf.sums import polynomial_basis
 
-    weights = surface.weights
+    weights = surface.weights if weights is None else weights
     degree = kernel.polynomial_degree
 
     def grid(pts, gradient=False):

@@ -158,6 +158,38 @@ def test_grid_evaluator_mesh_matches_exact_evaluation_within_a_fraction_of_a_vox
     assert mesh_evaluator(s, min_centres=10**6).kind == "table"
 
 
+def test_a_refit_shares_the_first_fits_meshing_grid_sum_with_its_own_weights():
+    """A robust refit (the same constraints, some left out, new weights) is evaluated by the first fit's
+    meshing grid sum with its own weights, zero at the centres it lacks: no new grid sum, and f and
+    grad f as the refit's direct sums give them, within the grid's tolerance (MESH_EPS of max |f|,
+    ten times that for gradients).  Centres that are not those of the grid sum get a grid of their own."""
+    from o3drbf.extract import MESH_EPS, mesh_evaluator
+    from o3drbf.solvers import solve
+
+    first = _fitted_torus()
+    grid = mesh_evaluator(first)
+    keep = np.ones(len(first.centres), bool)
+    keep[::7] = False  # left out, as a robust refit drops constraints
+    c = first.centres[keep]
+    y = np.where(np.arange(len(first.centres)) < 1500, 0.0, -1.0)[keep]
+    sol = solve(first.kernel, c, y, 0.05 * first.kernel.value_at_zero, method="dense")
+    refit = ImplicitSurface(first.kernel, c, sol.weights, sol.poly)
+    shared = mesh_evaluator(refit, shared=(grid, np.flatnonzero(keep)))
+    assert shared.kind == "grid" and shared.operator is grid.operator and refit.meshing is shared
+    pts = c[::5] + np.random.default_rng(0).normal(scale=0.03, size=(len(c[::5]), 3))
+    f, g = shared(pts, gradient=True)
+    f_ref, g_ref = refit.evaluate_box(pts, gradient=True)
+    scale = np.abs(f_ref).max()
+    assert np.abs(f - f_ref).max() < MESH_EPS * scale, np.abs(f - f_ref).max() / scale
+    assert np.abs(g - g_ref).max() < 10 * MESH_EPS * np.abs(g_ref).max(), np.abs(g - g_ref).max() / np.abs(g_ref).max()
+    np.testing.assert_array_equal(first.meshing(pts), grid(pts))  # the first fit's values unchanged
+    # Places that do not hold the refit's centres: a grid sum of its own, still right.
+    other = ImplicitSurface(first.kernel, c, sol.weights, sol.poly)
+    own = mesh_evaluator(other, shared=(grid, np.flatnonzero(keep)[::-1]))
+    assert own.kind == "grid" and own.operator is not grid.operator
+    assert np.abs(own(pts) - f_ref).max() < MESH_EPS * scale
+
+
 class Ball:
     """f = R^2 - |x|^2 in box coordinates: a ball whose f bends across each cell, so straight-line
     interpolation between grid corners puts the vertices inside it (by about h^2 / (8 R))."""

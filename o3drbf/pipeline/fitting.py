@@ -288,10 +288,12 @@ def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = F
         last["smoothing"] = smoothing
         keep, solution = session.solve(smoothing)
         fitted = surface_of(solution, constraints.points[keep], params.kernel, cset.normalization)
-        if fitted.evaluator is not None:  # a fast-evaluated fit: its own grid, wrapped, serves residuals and meshing
+        if fitted.evaluator is not None or "grid" in last:
             from o3drbf.extract import mesh_evaluator
 
-            mesh_evaluator(fitted)
+            # A fast-evaluated fit: its own grid, wrapped, serves residuals and meshing.  Another refit: the
+            # first fit's meshing grid sum, over the same centres, serves it with its weights.
+            mesh_evaluator(fitted, shared=(last["grid"], np.flatnonzero(keep)) if "grid" in last else None)
         return fitted, solution
 
     surface, sol = refit()
@@ -303,8 +305,9 @@ def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = F
             from o3drbf.extract import mesh_evaluator
 
             # The grid marching cubes will use (a fast fit's own evaluation grid, or a new one), built now: the
-            # first residuals, f and grad f, come from it (not from a grid ten times as fine for gradients alone).
-            mesh_evaluator(surface)
+            # first residuals, f and grad f, come from it (not from a grid ten times as fine for gradients alone),
+            # and the refits' residuals too (below).
+            last["grid"] = mesh_evaluator(surface)
 
         if loose is not None:
             session.options["rtol"] = loose

@@ -251,3 +251,34 @@ def test_the_robust_refits_of_a_fast_evaluated_fit_are_loose_and_the_last_is_fin
     dense = ImplicitSurface(r.surface.kernel, box, ref.weights, ref.poly, r.surface.normalization)
     # 2e-5 here; 2e-4 when the last refit is left at the loose tolerance
     assert np.abs(r.surface.evaluate_box(box) - dense.evaluate_box(box)).max() < 1e-4
+
+
+def test_the_robust_refits_below_fast_evaluation_share_the_first_fits_meshing_grid(monkeypatch):
+    """A fast fit below FAST_EVALUATION_MIN (no evaluator of its own) with robust rounds: its refits measure
+    their residuals on the first fit's meshing grid sum with their own weights, and marching cubes meshes the
+    final surface on it too: one meshing grid sum in all (the refits summed directly, and the final
+    surface built another).  The mesh is the final surface's: its vertices lie on f = 0 by direct sums."""
+    from o3drbf.extract import MESH_EPS
+    from o3drbf.pipeline import fitting
+    from o3drbf.solvers.fast import grid
+
+    meshing = []
+    real_grid = grid.GridSum.__init__
+
+    def counting(self, kernel, centres, eps=grid.DEFAULT_EPS, *args, **kwargs):
+        if eps == MESH_EPS and not args and not kwargs:
+            meshing.append(len(centres))
+        real_grid(self, kernel, centres, eps, *args, **kwargs)
+
+    monkeypatch.setattr(grid.GridSum, "__init__", counting)
+    p, n = Torus().sample(15_000, noise=0.01, seed=3)
+    rng = np.random.default_rng(4)
+    strays = rng.choice(len(p), 450, replace=False)
+    p[strays] += rng.normal(0.0, 0.08, (len(strays), 3))
+    r = o3drbf.reconstruct(p, n, resolution=48, solver="fast")
+    assert r.report.solver == "fast" and len(r.surface.centres) < fitting.FAST_EVALUATION_MIN
+    assert r.report.robust["rounds"] >= 1 and r.mesh.is_watertight()
+    assert len(meshing) == 1, meshing
+    v = r.surface.normalization.forward(np.asarray(r.mesh.vertices))
+    f, g = r.surface.evaluate_box(v, gradient=True)
+    assert np.median(np.abs(f) / np.linalg.norm(g, axis=1)) < 0.01 * 2.0 / 48  # on f = 0 within a hundredth of a cell
