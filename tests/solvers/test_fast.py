@@ -365,8 +365,9 @@ def test_sums_at_fixed_targets_and_a_small_subsets_own_grid(problem3k, dense3k):
 @pytest.mark.parametrize("eps", [1e-3, 1e-7])
 def test_near_field_summed_on_the_fly_matches_the_stored_matrix_and_dense(problem3k, dense3k, eps):
     """A grid sum whose near field is summed on the fly (no stored matrix, as at a million
-    centres) gives the stored-matrix product to rounding, and so the dense one to eps; its looser
-    companions and its coarse-to-fine update Phi[:, C] z_C too (with far centres summed directly)."""
+    centres) gives the stored-matrix product to the rounding of its stored entries (single precision,
+    each rounded once: 1e-8 of the product), and so the dense one to eps; its looser companions and its
+    coarse-to-fine update Phi[:, C] z_C too (with far centres summed directly)."""
     kernel = KERNELS["multiorder-10"]
     c = np.vstack([problem3k[0], [[4.0, 4.0, 4.0], [-4.0, 3.0, 1.0]]])  # two far centres (outside the grid)
     a = np.vstack([np.column_stack([dense3k("multiorder-10"), kernel_matrix(kernel, problem3k[0], c[-2:])]),
@@ -377,7 +378,7 @@ def test_near_field_summed_on_the_fly_matches_the_stored_matrix_and_dense(proble
     ref = a @ w
     for e in (None, 1e-3):
         got, want = fly.matvec(w, eps=e), stored.matvec(w, eps=e)
-        assert np.linalg.norm(got - want) / np.linalg.norm(want) < 1e-13
+        assert np.linalg.norm(got - want) / np.linalg.norm(want) < 1e-8
         assert np.linalg.norm(got - ref) / np.linalg.norm(ref) < max(eps, e or 0)
     assert fly._near_m is None and all(t._near_m is None for t in fly.__dict__.get("_tiers", {}).values())
     subset = np.r_[np.random.default_rng(22).choice(len(c) - 2, 300, replace=False), len(c) - 1]
@@ -385,15 +386,32 @@ def test_near_field_summed_on_the_fly_matches_the_stored_matrix_and_dense(proble
     ref = a[:, subset] @ z
     for e in (None, 1e-2):
         got, want = fly.from_subset(subset)(z, e), stored.from_subset(subset)(z, e)
-        assert np.linalg.norm(got - want) / np.linalg.norm(want) < 1e-13
+        assert np.linalg.norm(got - want) / np.linalg.norm(want) < 1e-8
         assert np.linalg.norm(got - ref) / np.linalg.norm(ref) < max(eps, e or 0)
+
+
+def test_the_stored_near_field_is_single_precision_each_entry_rounded_once(problem3k):
+    """The products' stored near field (and its looser companions', restricted from it) keeps float32
+    entries: each the double-precision table value rounded once, on the same pattern (two thirds of
+    the memory, and of the bytes each product reads)."""
+    kernel = KERNELS["multiorder-10"]
+    g = fast.GridSum(kernel, problem3k[0], eps=1e-6, store=True)
+    near = g.near
+    double = g.cells.matrix(g._cc, g.tab, g.dr)  # the same entries, kept in double
+    assert near.dtype == np.float32 and double.dtype == np.float64
+    np.testing.assert_array_equal(near.indptr, double.indptr)
+    np.testing.assert_array_equal(near.indices, double.indices)
+    np.testing.assert_array_equal(near.data, double.data.astype(np.float32))
+    tier = g._tier(1e-3)
+    assert tier._near_parent is g and tier.near.dtype == np.float32 and tier.near.nnz < near.nnz
 
 
 @pytest.mark.parametrize("store", [True, False])
 @pytest.mark.parametrize("block", [True, False])
 def test_rows_of_a_product_at_some_centres(problem3k, dense3k, store, block, monkeypatch):
     """``GridSum.rows``: a product's rows at a subset of the centres, far ones (outside the grid) among them,
-    are the full product's rows to rounding and the dense rows to the tolerance, at the operator's accuracy
+    are the full product's rows to rounding (the product's stored near field: single precision, 1e-8 of
+    the product) and the dense rows to the tolerance, at the operator's accuracy
     and at a looser companion's; the far centres are summed as the product sums them (never by a grid
     enlarged to reach them), with their stored block or without it."""
     import o3drbf.solvers.fast.grid as grid_module
@@ -413,7 +431,7 @@ def test_rows_of_a_product_at_some_centres(problem3k, dense3k, store, block, mon
         shape = g._tier(e).mesh.shape
         got = g.rows(subset, eps=e)(w)
         assert g._tier(e).mesh.shape == shape
-        np.testing.assert_allclose(got, g.matvec(w, eps=e)[subset], rtol=0, atol=1e-12 * np.abs(ref).max())
+        np.testing.assert_allclose(got, g.matvec(w, eps=e)[subset], rtol=0, atol=(1e-8 if store else 1e-12) * np.abs(ref).max())
         assert np.linalg.norm(got - ref) / np.linalg.norm(ref) < tol
         np.testing.assert_allclose(got[[0, -1]], ref[[0, -1]], rtol=1e-12)  # the far ones
 

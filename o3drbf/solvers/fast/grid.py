@@ -294,7 +294,7 @@ class GridSum:
             if parent is not None and parent._near_m is not None and parent.rc >= self.rc:
                 self._near_m = restrict_near(parent._near_m, self._cc, self.rc, self.tab, self.dr)  # no cell search
             else:
-                self._near_m = self.cells.matrix(self._cc, self.tab, self.dr)
+                self._near_m = self.cells.matrix(self._cc, self.tab, self.dr, dtype=np.float32)
             self.info["near_nnz"] = int(self._near_m.nnz)
         return self._near_m
 

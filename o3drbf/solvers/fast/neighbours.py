@@ -14,8 +14,8 @@ from o3drbf.solvers.base import memory_limit_or_default
 __all__ = ["HAVE_GRID", "NNZ_BYTES", "PRODUCT_NEIGHBOURS_MAX", "NEAR_STORE_BYTES", "CELLS_PER_POINT", "store_near", "pairs_chunks", "mean_neighbours", "sparse_matrix",
            "CellList", "default_neighbours", "product_neighbours", "RADIUS_SAMPLE", "radius_sample", "neighbour_radius", "nearest_distance", "csr_matvec", "restrict_near", "spatial_order"]
 
-#: Bytes per stored sparse entry (float64 value, int32 column index).
-NNZ_BYTES = 12
+#: Bytes per stored entry of a near-field matrix (float32 value, int32 column index).
+NNZ_BYTES = 8
 #: Pairs handled per chunk when building neighbour lists / summing sparse terms.
 PAIR_CHUNK = 8_000_000
 
@@ -122,7 +122,7 @@ def restrict_near(matrix, points, radius: float, tab, dr: float) -> sp.csr_matri
     _restrict_pass(False, matrix.indptr, matrix.indices, pts, float(radius), tab, float(dr), counts, indptr, i32, f64)
     np.cumsum(counts, out=indptr[1:])
     indices = np.empty(indptr[-1], matrix.indices.dtype)
-    data = np.empty(indptr[-1])
+    data = np.empty(indptr[-1], matrix.dtype)
     _restrict_pass(True, matrix.indptr, matrix.indices, pts, float(radius), tab, float(dr), counts, indptr, indices, data)
     return sp.csr_matrix((data, indices, indptr), shape=matrix.shape)
 
