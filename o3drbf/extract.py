@@ -133,9 +133,11 @@ def mesh_evaluator(surface, eps: float = MESH_EPS, min_centres: int = GRID_EVALU
     from o3drbf.solvers import fast
 
     op = getattr(own, "fast_sum", None)
-    if own is not None and not (isinstance(op, fast.GridSum) and op.n == len(surface.centres)):
-        return table
-    weights = None  # this surface's (below), or over the shared grid sum's centres
+    weights = None  # this surface's (below), or over the centres of a grid sum it shares (its own evaluator's, or ``shared``'s)
+    if own is not None:
+        weights = getattr(own, "weights", surface.weights)
+        if not (isinstance(op, fast.GridSum) and op.n == len(weights)):
+            return table
     if op is None and shared is not None:
         other, index = shared
         sop = getattr(other, "operator", None)

@@ -62,13 +62,15 @@ def fit(constraints: Constraints, kernel: Kernel, normalization: Normalization, 
     return surface_of(sol, constraints.points, kernel, normalization), sol
 
 
-def surface_of(sol: Solution, centres, kernel: Kernel, normalization: Normalization) -> ImplicitSurface:
-    """The implicit surface of a solution at its centres (box units); fast-solved large ones evaluate by fast sums."""
+def surface_of(sol: Solution, centres, kernel: Kernel, normalization: Normalization, shared=None) -> ImplicitSurface:
+    """The implicit surface of a solution at its centres (box units); fast-solved large ones evaluate by fast sums
+    (``shared``: another surface's evaluator and these centres' places among its centres, whose grid sums serve
+    this one too: :func:`o3drbf.solvers.fast.make_evaluator`)."""
     surf = ImplicitSurface(kernel, centres, sol.weights, sol.poly, normalization)
     if sol.method == "fast" and len(centres) >= FAST_EVALUATION_MIN:
         from o3drbf.solvers.fast import make_evaluator
 
-        surf.evaluator = make_evaluator(kernel, centres, sol.weights)
+        surf.evaluator = make_evaluator(kernel, centres, sol.weights, shared=shared)
     return surf
 
 
@@ -287,13 +289,17 @@ def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = F
     def refit(smoothing=None):
         last["smoothing"] = smoothing
         keep, solution = session.solve(smoothing)
-        fitted = surface_of(solution, constraints.points[keep], params.kernel, cset.normalization)
+        index = np.flatnonzero(keep)
+        # A refit evaluates by the first fit's grid sums (the same centres, some left out) with its own weights.
+        fitted = surface_of(solution, constraints.points[keep], params.kernel, cset.normalization,
+                            shared=(last["evaluator"], index) if last.get("evaluator") is not None else None)
+        last.setdefault("evaluator", fitted.evaluator)
         if fitted.evaluator is not None or "grid" in last:
             from o3drbf.extract import mesh_evaluator
 
             # A fast-evaluated fit: its own grid, wrapped, serves residuals and meshing.  Another refit: the
             # first fit's meshing grid sum, over the same centres, serves it with its weights.
-            mesh_evaluator(fitted, shared=(last["grid"], np.flatnonzero(keep)) if "grid" in last else None)
+            mesh_evaluator(fitted, shared=(last["grid"], index) if "grid" in last else None)
         return fitted, solution
 
     surface, sol = refit()

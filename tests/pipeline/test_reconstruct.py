@@ -282,3 +282,35 @@ def test_the_robust_refits_below_fast_evaluation_share_the_first_fits_meshing_gr
     v = r.surface.normalization.forward(np.asarray(r.mesh.vertices))
     f, g = r.surface.evaluate_box(v, gradient=True)
     assert np.median(np.abs(f) / np.linalg.norm(g, axis=1)) < 0.01 * 2.0 / 48  # on f = 0 within a hundredth of a cell
+
+
+def test_the_robust_refits_of_a_fast_evaluated_fit_share_its_evaluators_grid_sums(monkeypatch):
+    """From FAST_EVALUATION_MIN constraints (made 1,000 here) every surface has its own evaluator; a robust fit's
+    refits (the first fit's centres, some left out) share the first fit's grid sums with their own weights: one
+    evaluator grid sum in all, and the final surface evaluates as its own direct sums do."""
+    from o3drbf.pipeline import fitting
+    from o3drbf.solvers.fast import evaluator
+
+    built = []
+    real = evaluator.fast_operator
+
+    def counting(kernel, centres, *args, **kwargs):
+        built.append(len(centres))
+        return real(kernel, centres, *args, **kwargs)
+
+    monkeypatch.setattr(evaluator, "fast_operator", counting)
+    monkeypatch.setattr(fitting, "FAST_EVALUATION_MIN", 1000)
+    p, n = Torus().sample(15_000, noise=0.01, seed=3)
+    rng = np.random.default_rng(4)
+    strays = rng.choice(len(p), 450, replace=False)
+    p[strays] += rng.normal(0.0, 0.08, (len(strays), 3))
+    r = o3drbf.reconstruct(p, n, resolution=48, solver="fast")
+    assert r.report.robust["rounds"] >= 1 and r.mesh.is_watertight()
+    assert len(built) == 1, built
+    ev = r.surface.evaluator
+    assert ev.fast_sum.n >= len(r.surface.centres) and ev.weights.shape == (ev.fast_sum.n,)
+    x = r.surface.centres[::50]
+    from o3drbf.rbf.sums import kernel_sum
+
+    ref = kernel_sum(r.surface.kernel, r.surface.centres, r.surface.weights, x)
+    assert np.abs(ev(x) - ref).max() < 1e-5 * np.abs(ref).max()

@@ -173,6 +173,33 @@ def test_evaluator_values_and_gradients(problem3k, name):
     np.testing.assert_allclose(ev(targets[:300], False), ref_v[:300], rtol=1e-5, atol=1e-6 * np.abs(ref_v).max())
 
 
+def test_an_evaluator_shares_another_evaluators_grid_sums_over_a_superset_of_its_centres(problem3k):
+    """``make_evaluator(shared=(ev, index))``: a refit's centres (some of the first fit's left out) and weights are
+    evaluated by the first evaluator's grid sums (no new one), f and grad f as direct sums of the refit's own
+    centres give them; the first evaluator is unchanged.  Centres not at ``index``, or another ``eps``: new sums."""
+    kernel = KERNELS["multiorder-10"]
+    c = problem3k[0]
+    w = np.random.default_rng(9).normal(size=len(c))
+    first = fast.make_evaluator(kernel, c, w, eps=1e-6)
+    keep = np.ones(len(c), bool)
+    keep[::5] = False
+    index = np.flatnonzero(keep)
+    w2 = np.random.default_rng(19).normal(size=len(index))
+    ev = fast.make_evaluator(kernel, c[keep], w2, eps=1e-6, shared=(first, index))
+    assert ev.fast_sum is first.fast_sum and ev.weights.shape == (len(c),) and (ev.weights[~keep] == 0).all()
+    targets = np.random.default_rng(10).uniform(-1.1, 1.1, (1500, 3))
+    vals, grads = ev(targets, True)
+    ref_v, ref_g = kernel_sum(kernel, c[keep], w2, targets, gradient=True)
+    assert np.linalg.norm(vals - ref_v) / np.linalg.norm(ref_v) < 1e-6
+    assert np.linalg.norm(grads - ref_g) / np.linalg.norm(ref_g) < 1e-5
+    first_v = kernel_sum(kernel, c, w, targets)
+    assert np.linalg.norm(first(targets) - first_v) / np.linalg.norm(first_v) < 1e-6
+    for other in (fast.make_evaluator(kernel, c[keep], w2, eps=1e-6, shared=(first, index[::-1])),
+                  fast.make_evaluator(kernel, c[keep], w2, eps=1e-5, shared=(first, index))):
+        assert other.fast_sum is not first.fast_sum and other.weights.shape == (len(index),)
+        assert np.linalg.norm(other(targets) - ref_v) / np.linalg.norm(ref_v) < 1e-5
+
+
 def test_evaluator_chunks_and_thinplate_direct(problem3k):
     c = problem3k[0][:500]
     w = np.random.default_rng(11).normal(size=len(c))

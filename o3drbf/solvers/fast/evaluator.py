@@ -14,20 +14,36 @@ __all__ = ["make_evaluator"]
 
 
 def make_evaluator(kernel: Kernel, centres, weights, eps: float = DEFAULT_EPS, chunk: int = 1_000_000,
-                   backend: str = "auto"):
+                   backend: str = "auto", shared=None):
     """A callable ``(points (M, 3), gradient) -> values (M,) [, grads (M, 3)]`` for
     ``ImplicitSurface.evaluator``: ``sum_i w_i phi(|x - c_i|)`` without the
     polynomial, by FMM with targets (multi-order), sparse sums (Gaussian) or
     direct sums (thin-plate); ``backend`` as in :func:`fast_operator` (the
     grid for the multi-order kernel by default).  Targets are processed
     ``chunk`` at a time.  ``evaluator.cover(lo, hi)`` prepares the grid for
-    targets in that box (:meth:`GridSum.cover`; a no-op for other backends)."""
-    # Few neighbours: the near part of an evaluation is summed afresh at every target.
-    fast = fast_operator(kernel, centres, eps=eps, backend=backend, neighbours=default_neighbours(len(centres)))
+    targets in that box (:meth:`GridSum.cover`; a no-op for other backends).
+
+    ``shared`` is an evaluator this function made and the places of
+    ``centres`` among its grid sum's centres (a robust refit of the same
+    constraints, some left out: ``numpy.flatnonzero(keep)``).  Where that
+    grid sum holds exactly these centres there, with the same kernel and
+    ``eps``, its grid sums (the values' and the gradients' finer one) serve
+    these weights, zero at the centres not among ``centres``: no new grid
+    sum.  ``evaluator.fast_sum`` is the grid sum and ``evaluator.weights``
+    the weights over its centres."""
+    fine = None
+    shared_sums = _shared_sums(shared, kernel, centres, eps)
+    if shared_sums is not None:
+        fast, fine, index = shared_sums
+        full = np.zeros(fast.n)
+        full[index] = np.asarray(weights, dtype=float)
+        weights = full
+    else:  # few neighbours: the near part of an evaluation is summed afresh at every target
+        fast = fast_operator(kernel, centres, eps=eps, backend=backend, neighbours=default_neighbours(len(centres)))
     if isinstance(fast, GridSum):
         # The grid's gradients are ~10x less accurate than its values: gradients
         # (vertex normals, few points) come from a second grid at eps / 10.
-        fine = {}
+        fine = {} if fine is None else fine
 
         def pick(gradient):
             if not gradient:
@@ -70,5 +86,22 @@ def make_evaluator(kernel: Kernel, centres, weights, eps: float = DEFAULT_EPS, c
         return np.concatenate(parts)
 
     evaluator.fast_sum = fast
+    evaluator.weights = weights
     evaluator.cover = cover
+    evaluator.sharing = (kernel, eps, fine)
     return evaluator
+
+
+def _shared_sums(shared, kernel, centres, eps):
+    """``(grid sum, its gradients' cache, index)`` of ``shared`` (see :func:`make_evaluator`) when it serves
+    these centres, kernel and ``eps``; else None."""
+    if shared is None:
+        return None
+    other, index = shared
+    fast, (k, e, fine) = getattr(other, "fast_sum", None), getattr(other, "sharing", (None, None, None))
+    index = np.asarray(index, dtype=np.int64)
+    centres = np.asarray(centres, dtype=float)
+    if not (isinstance(fast, GridSum) and fine is not None and k == kernel and e == eps and index.shape == (len(centres),)
+            and (index.size == 0 or (index.min() >= 0 and index.max() < fast.n)) and np.array_equal(fast.centres[index], centres)):
+        return None
+    return fast, fine, index
