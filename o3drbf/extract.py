@@ -143,8 +143,7 @@ def mesh_evaluator(surface, eps: float = MESH_EPS, min_centres: int = GRID_EVALU
         sop = getattr(other, "operator", None)
         index = np.asarray(index, dtype=np.int64)
         if (getattr(other, "kind", None) == "grid" and getattr(other, "settings", None) == (eps, min_centres)
-                and isinstance(sop, fast.GridSum) and sop.kernel == kernel and index.shape == (len(surface.centres),)
-                and np.array_equal(sop.centres[index], surface.centres)):
+                and isinstance(sop, fast.GridSum) and sop.kernel == kernel and sop.holds(surface.centres, index)):
             op = sop
             weights = np.zeros(op.n)
             weights[index] = surface.weights

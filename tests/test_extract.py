@@ -188,6 +188,8 @@ def test_a_refit_shares_the_first_fits_meshing_grid_sum_with_its_own_weights():
     own = mesh_evaluator(other, shared=(grid, np.flatnonzero(keep)[::-1]))
     assert own.kind == "grid" and own.operator is not grid.operator
     assert np.abs(own(pts) - f_ref).max() < MESH_EPS * scale
+    beyond = ImplicitSurface(first.kernel, c, sol.weights, sol.poly)  # places past the grid sum's centres: not shared
+    assert mesh_evaluator(beyond, shared=(grid, np.flatnonzero(keep) + len(first.centres))).operator is not grid.operator
 
 
 class Ball:

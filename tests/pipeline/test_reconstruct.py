@@ -210,6 +210,15 @@ def test_a_fit_with_a_fast_evaluator_takes_its_robust_residuals_from_the_meshing
     assert r.mesh.is_watertight()
 
 
+def _torus_with_strays():
+    """15,000 points of a torus with 1 % noise, 3 % of them thrown off: a fit with robust rounds."""
+    p, n = Torus().sample(15_000, noise=0.01, seed=3)
+    rng = np.random.default_rng(4)
+    strays = rng.choice(len(p), 450, replace=False)
+    p[strays] += rng.normal(0.0, 0.08, (len(strays), 3))
+    return p, n
+
+
 def test_the_robust_refits_of_a_fast_evaluated_fit_are_loose_and_the_last_is_finished(monkeypatch):
     """Noisy points with 3 % strays, fast-solved and evaluated (made so from 1,000 centres): the robust
     refits solve to the loose tolerance of ``ROBUST_SHIFT`` (they only measure residuals), measure them on
@@ -234,10 +243,7 @@ def test_the_robust_refits_of_a_fast_evaluated_fit_are_loose_and_the_last_is_fin
     monkeypatch.setattr(grid.GridSum, "__init__", counting)
     monkeypatch.setattr(Refitter, "solve", recording)
     monkeypatch.setattr(fitting, "FAST_EVALUATION_MIN", 1000)
-    p, n = Torus().sample(15_000, noise=0.01, seed=3)
-    rng = np.random.default_rng(4)
-    strays = rng.choice(len(p), 450, replace=False)
-    p[strays] += rng.normal(0.0, 0.08, (len(strays), 3))
+    p, n = _torus_with_strays()
     r = o3drbf.reconstruct(p, n, resolution=48, solver="fast")
     rounds = r.report.robust["rounds"]
     assert r.report.solver == "fast" and rounds >= 1 and r.mesh.is_watertight()
@@ -271,10 +277,7 @@ def test_the_robust_refits_below_fast_evaluation_share_the_first_fits_meshing_gr
         real_grid(self, kernel, centres, eps, *args, **kwargs)
 
     monkeypatch.setattr(grid.GridSum, "__init__", counting)
-    p, n = Torus().sample(15_000, noise=0.01, seed=3)
-    rng = np.random.default_rng(4)
-    strays = rng.choice(len(p), 450, replace=False)
-    p[strays] += rng.normal(0.0, 0.08, (len(strays), 3))
+    p, n = _torus_with_strays()
     r = o3drbf.reconstruct(p, n, resolution=48, solver="fast")
     assert r.report.solver == "fast" and len(r.surface.centres) < fitting.FAST_EVALUATION_MIN
     assert r.report.robust["rounds"] >= 1 and r.mesh.is_watertight()
@@ -300,10 +303,7 @@ def test_the_robust_refits_of_a_fast_evaluated_fit_share_its_evaluators_grid_sum
 
     monkeypatch.setattr(evaluator, "fast_operator", counting)
     monkeypatch.setattr(fitting, "FAST_EVALUATION_MIN", 1000)
-    p, n = Torus().sample(15_000, noise=0.01, seed=3)
-    rng = np.random.default_rng(4)
-    strays = rng.choice(len(p), 450, replace=False)
-    p[strays] += rng.normal(0.0, 0.08, (len(strays), 3))
+    p, n = _torus_with_strays()
     r = o3drbf.reconstruct(p, n, resolution=48, solver="fast")
     assert r.report.robust["rounds"] >= 1 and r.mesh.is_watertight()
     assert len(built) == 1, built

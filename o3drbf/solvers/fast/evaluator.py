@@ -100,8 +100,6 @@ def _shared_sums(shared, kernel, centres, eps):
     other, index = shared
     fast, (k, e, fine) = getattr(other, "fast_sum", None), getattr(other, "sharing", (None, None, None))
     index = np.asarray(index, dtype=np.int64)
-    centres = np.asarray(centres, dtype=float)
-    if not (isinstance(fast, GridSum) and fine is not None and k == kernel and e == eps and index.shape == (len(centres),)
-            and (index.size == 0 or (index.min() >= 0 and index.max() < fast.n)) and np.array_equal(fast.centres[index], centres)):
+    if not (isinstance(fast, GridSum) and fine is not None and k == kernel and e == eps and fast.holds(centres, index)):
         return None
     return fast, fine, index
