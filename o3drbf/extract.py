@@ -141,12 +141,10 @@ def mesh_evaluator(surface, eps: float = MESH_EPS, min_centres: int = GRID_EVALU
     if op is None and shared is not None:
         other, index = shared
         sop = getattr(other, "operator", None)
-        index = np.asarray(index, dtype=np.int64)
         if (getattr(other, "kind", None) == "grid" and getattr(other, "settings", None) == (eps, min_centres)
-                and isinstance(sop, fast.GridSum) and sop.kernel == kernel and sop.holds(surface.centres, index)):
-            op = sop
-            weights = np.zeros(op.n)
-            weights[index] = surface.weights
+                and isinstance(sop, fast.GridSum) and sop.kernel == kernel):
+            weights = sop.weights_over(surface.centres, index, surface.weights)
+            op = None if weights is None else sop
     if op is None:  # no evaluator of its own
         from o3drbf.rbf.kernels import MultiOrder
 

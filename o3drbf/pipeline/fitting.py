@@ -292,14 +292,14 @@ def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = F
         index = np.flatnonzero(keep)
         # A refit evaluates by the first fit's grid sums (the same centres, some left out) with its own weights.
         fitted = surface_of(solution, constraints.points[keep], params.kernel, cset.normalization,
-                            shared=(last["evaluator"], index) if last.get("evaluator") is not None else None)
+                            shared=(last.get("evaluator"), index))
         last.setdefault("evaluator", fitted.evaluator)
         if fitted.evaluator is not None or "grid" in last:
             from o3drbf.extract import mesh_evaluator
 
             # A fast-evaluated fit: its own grid, wrapped, serves residuals and meshing.  Another refit: the
             # first fit's meshing grid sum, over the same centres, serves it with its weights.
-            mesh_evaluator(fitted, shared=(last["grid"], index) if "grid" in last else None)
+            mesh_evaluator(fitted, shared=(last.get("grid"), index))
         return fitted, solution
 
     surface, sol = refit()

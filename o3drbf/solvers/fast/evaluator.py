@@ -32,12 +32,9 @@ def make_evaluator(kernel: Kernel, centres, weights, eps: float = DEFAULT_EPS, c
     sum.  ``evaluator.fast_sum`` is the grid sum and ``evaluator.weights``
     the weights over its centres."""
     fine = None
-    shared_sums = _shared_sums(shared, kernel, centres, eps)
+    shared_sums = _shared_sums(shared, kernel, centres, weights, eps)
     if shared_sums is not None:
-        fast, fine, index = shared_sums
-        full = np.zeros(fast.n)
-        full[index] = np.asarray(weights, dtype=float)
-        weights = full
+        fast, fine, weights = shared_sums
     else:  # few neighbours: the near part of an evaluation is summed afresh at every target
         fast = fast_operator(kernel, centres, eps=eps, backend=backend, neighbours=default_neighbours(len(centres)))
     if isinstance(fast, GridSum):
@@ -92,14 +89,14 @@ def make_evaluator(kernel: Kernel, centres, weights, eps: float = DEFAULT_EPS, c
     return evaluator
 
 
-def _shared_sums(shared, kernel, centres, eps):
-    """``(grid sum, its gradients' cache, index)`` of ``shared`` (see :func:`make_evaluator`) when it serves
-    these centres, kernel and ``eps``; else None."""
+def _shared_sums(shared, kernel, centres, weights, eps):
+    """``(grid sum, its gradients' cache, weights over its centres)`` of ``shared`` (see :func:`make_evaluator`)
+    when it serves these centres, kernel and ``eps``; else None."""
     if shared is None:
         return None
     other, index = shared
     fast, (k, e, fine) = getattr(other, "fast_sum", None), getattr(other, "sharing", (None, None, None))
-    index = np.asarray(index, dtype=np.int64)
-    if not (isinstance(fast, GridSum) and fine is not None and k == kernel and e == eps and fast.holds(centres, index)):
+    if not (isinstance(fast, GridSum) and fine is not None and k == kernel and e == eps):
         return None
-    return fast, fine, index
+    full = fast.weights_over(centres, index, weights)
+    return None if full is None else (fast, fine, full)

@@ -334,13 +334,18 @@ class GridSum:
             rc = self._tier_rc = neighbour_radius(self.centres, self.tree, min(300, max(self.n // 300, 64)))
         return max(rc, self.h / split_design(1.0, clip_eps(tol) / 10)[2])
 
-    def holds(self, centres, index) -> bool:
-        """Whether this grid sum's centres at ``index`` are exactly ``centres`` (e.g. a robust refit's: the
-        same constraints, some left out), so that it can sum their weights, zero at its other centres."""
+    def weights_over(self, centres, index, weights) -> np.ndarray | None:
+        """``weights`` of ``centres`` as weights over this grid sum's centres (zero at the others), when its
+        centres at ``index`` are exactly ``centres`` (e.g. a robust refit's: the same constraints, some left
+        out), so that it sums them; else None."""
         index = np.asarray(index)
         centres = np.asarray(centres, dtype=float)
-        return bool(index.shape == (len(centres),) and (index.size == 0 or (index.min() >= 0 and index.max() < self.n))
-                    and np.array_equal(self.centres[index], centres))
+        if not (index.shape == (len(centres),) and (index.size == 0 or (index.min() >= 0 and index.max() < self.n))
+                and np.array_equal(self.centres[index], centres)):
+            return None
+        full = np.zeros(self.n)
+        full[index] = np.asarray(weights, dtype=float)
+        return full
 
     def matvec(self, w, eps: float | None = None) -> np.ndarray:
         """(Phi w)_i, self term included, to relative accuracy ``eps`` (default: the operator's)."""
