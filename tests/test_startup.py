@@ -54,6 +54,18 @@ def test_report_json_has_the_summary_and_every_stage(tmp_path):
     assert data["command_seconds"] >= sum(s["seconds"] for s in data["stages"])
 
 
+def test_summary_checks_are_a_stage_of_their_own(tmp_path, capsys):
+    """Without ``-q`` the closing summary's checks of the mesh are timed as the last stage, in the report and the summary."""
+    p, n = Sphere(1.0).sample(1200, seed=3)
+    write_points(tmp_path / "sphere.ply", p, n)
+    report = tmp_path / "run.json"
+    assert main(["reconstruct", str(tmp_path / "sphere.ply"), "-o", str(tmp_path / "m.ply"), "--report", str(report)]) == 0
+    names = [s["name"] for s in json.loads(report.read_text())["stages"]]
+    assert names[-2:] == ["write", "checks"]
+    line = next(x for x in capsys.readouterr().out.splitlines() if "time per stage" in x)
+    assert ", write " in line and ", checks " in line
+
+
 @pytest.mark.parametrize("name", ["run.txt", "sphere.ply"])
 def test_report_must_be_a_new_json_file(tmp_path, capsys, name):
     p, n = Sphere(1.0).sample(300, seed=3)

@@ -201,10 +201,15 @@ def _reconstruct(args) -> int:
     from o3drbf.pipeline import StageTiming, peak_rss_mb
 
     result.report.stages.append(StageTiming("write", time.perf_counter() - t_write, peak_rss_mb()))
+    checks = None
+    if not args.quiet:  # the summary's checks of the mesh, timed as a stage of their own
+        t_checks = time.perf_counter()
+        checks = summary_checks(result, data.points)
+        result.report.stages.append(StageTiming("checks", time.perf_counter() - t_checks, peak_rss_mb()))
     if args.report:
         write_report(args.report, result.report, time.perf_counter() - t0)
     if not args.quiet:
-        print(summary(result, data.points, args.input, out, args.save_model, time.perf_counter() - t0))
+        print(summary(result, data.points, args.input, out, args.save_model, time.perf_counter() - t0, checks))
     return 0
 
 
@@ -354,16 +359,26 @@ def _parameters_line(report) -> str:
     return line
 
 
-def summary(result, points, input_path, output_path, model_path=None, seconds=None) -> str:
-    """The closing summary: what went in, what came out, how well it fits, and where the time went."""
+def summary_checks(result, points) -> dict:
+    """The summary's checks of a reconstruction's mesh: ``fitness`` (:func:`o3drbf.mesh.metrics.fitness_error`
+    over the kept points) and ``report`` (:func:`o3drbf.mesh.metrics.mesh_report`)."""
     from o3drbf.mesh.metrics import fitness_error, mesh_report
 
+    kept = points if getattr(result, "points", None) is None else result.points  # outliers removed, repeats merged
+    return {"fitness": fitness_error(kept, result.mesh), "report": mesh_report(result.mesh)}
+
+
+def summary(result, points, input_path, output_path, model_path=None, seconds=None, checks=None) -> str:
+    """The closing summary: what went in, what came out, how well it fits, and where the time went.
+
+    ``checks``: :func:`summary_checks` of ``result`` and ``points`` when already made (else they are made here).
+    """
     s = result.report
     kept = points if getattr(result, "points", None) is None else result.points  # outliers removed, repeats merged
-    fit = fitness_error(kept, result.mesh)
+    checks = summary_checks(result, points) if checks is None else checks
+    fit, rep = checks["fitness"], checks["report"]
     removed = [f"{s.outliers_removed:,} removed as outliers"] * bool(s.outliers_removed) + [
         f"{s.duplicates_merged:,} repeated points merged"] * bool(s.duplicates_merged)
-    rep = mesh_report(result.mesh)
     scale = result.surface.normalization.scale
     colored = result.mesh.has_vertex_colors()
     lines = [

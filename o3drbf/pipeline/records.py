@@ -26,7 +26,7 @@ class StageTiming:
     Attributes
     ----------
     name : str
-        "read", "register" (with ``point_camera``), "outliers", "normals", "constraints", "parameters", "fit", "extract", "colour", "confidence" or "write".
+        "read", "register" (with ``point_camera``), "outliers", "normals", "constraints", "parameters", "fit", "extract", "colour", "confidence", "write" or (the command line's closing summary) "checks".
     seconds : float
         Wall time.
     peak_mb : float
