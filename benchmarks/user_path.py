@@ -2,6 +2,8 @@
 
 Every tool runs in its own process (start-up and imports included) under
 ``/usr/bin/time -v`` (wall seconds and peak resident memory), on inputs generated here.
+On the cases that take seconds (``REPEATED``) the tools take turns ``--repeats`` times
+(default 3) and each row is a tool's median run; the others run once.
 o3drbf runs ``o3drbf reconstruct IN -o OUT`` with its defaults (plus the flags a case
 names) and writes ``--report`` JSON, from which the per-stage table comes.
 
@@ -246,34 +248,50 @@ def have_ferreus() -> bool:
 # --------------------------------------------------------------------------------------
 # main
 # --------------------------------------------------------------------------------------
-def run_case(case: dict, folder: Path, env: dict, peers: bool) -> list[dict]:
-    """o3drbf on one case, then each peer on the same points; one row each."""
+#: Runs of each tool on the cases that take seconds (their single runs vary by a third on a shared machine):
+#: the tools take turns, run after run, and each row is the tool's median run.
+REPEATS = 3
+#: The cases run ``REPEATS`` times (the others once).
+REPEATED = ("start-up: 1,000 points", "torus 15k", "scan 27k", "noisy scan 27k")
+
+
+def median_run(runs: list[dict]) -> dict:
+    """The run of median seconds (the lower middle of an even count), with every run's seconds as ``runs``."""
+    ok = [r for r in runs if r["rc"] == 0] or runs
+    mid = sorted(ok, key=lambda r: r["seconds"])[(len(ok) - 1) // 2]
+    return {**mid, "runs": [round(r["seconds"], 3) for r in runs]}
+
+
+def run_case(case: dict, folder: Path, env: dict, peers: bool, repeats: int = 1) -> list[dict]:
+    """o3drbf on one case, then each peer on the same points, ``repeats`` rounds in turn; one row each (its median run)."""
     stem = Path(case["input"]).stem
     out, report = folder / f"{stem}_o3drbf.ply", folder / f"{stem}_o3drbf.json"
-    report.unlink(missing_ok=True)
-    r = timed(o3drbf_command() + ["reconstruct", str(case["input"]), "-o", str(out), "--report", str(report)] + case["args"], env=env)
-    if r["rc"] != 0:
-        print(r["err"], file=sys.stderr)
-    rep = json.loads(report.read_text()) if report.exists() else {}
-    row = {"case": case["name"], "tool": "o3drbf", "seconds": r["seconds"], "cpu": r["cpu"], "gb": r["gb"], "rc": r["rc"],
-           "detail": f"{rep.get('surface_constraints', '?')} surface constraints, {rep.get('solver', '?')}, "
-                     f"{rep.get('resolution', '?')} cells, {rep.get('triangles', '?')} triangles",
-           "stages": rep.get("stages", [])}
-    rows = [row]
-    if not peers:
-        return rows
-    jobs = [("Poisson d8", "poisson", "8"), ("Poisson d9", "poisson", "9")]
-    if have_ferreus() and rep:
-        jobs.append(("ferreus_rbf", "ferreus", f"{rep['surface_constraints']}:{rep.get('resolution') or 128}"))
-    for label, kind, arg in jobs:
-        pout = folder / f"{stem}_{kind}{arg.split(':')[0]}.ply"
-        pr = timed([sys.executable, str(Path(__file__).resolve()), "--peer", kind, str(case["points"]), arg, str(pout)], env=env)
-        if pr["rc"] != 0:
-            print(pr["err"], file=sys.stderr)
-        info = pr["out"].strip().splitlines()[-1] if pr["rc"] == 0 and pr["out"].strip() else "failed"
-        rows.append({"case": case["name"], "tool": label, "seconds": pr["seconds"], "cpu": pr["cpu"], "gb": pr["gb"], "rc": pr["rc"],
-                     "detail": info})
-    return rows
+    runs: dict[str, list[dict]] = {}
+    for _ in range(repeats):
+        report.unlink(missing_ok=True)
+        r = timed(o3drbf_command() + ["reconstruct", str(case["input"]), "-o", str(out), "--report", str(report)] + case["args"], env=env)
+        if r["rc"] != 0:
+            print(r["err"], file=sys.stderr)
+        rep = json.loads(report.read_text()) if report.exists() else {}
+        runs.setdefault("o3drbf", []).append(
+            {"case": case["name"], "tool": "o3drbf", "seconds": r["seconds"], "cpu": r["cpu"], "gb": r["gb"], "rc": r["rc"],
+             "detail": f"{rep.get('surface_constraints', '?')} surface constraints, {rep.get('solver', '?')}, "
+                       f"{rep.get('resolution', '?')} cells, {rep.get('triangles', '?')} triangles",
+             "stages": rep.get("stages", [])})
+        if not peers:
+            continue
+        jobs = [("Poisson d8", "poisson", "8"), ("Poisson d9", "poisson", "9")]
+        if have_ferreus() and rep:
+            jobs.append(("ferreus_rbf", "ferreus", f"{rep['surface_constraints']}:{rep.get('resolution') or 128}"))
+        for label, kind, arg in jobs:
+            pout = folder / f"{stem}_{kind}{arg.split(':')[0]}.ply"
+            pr = timed([sys.executable, str(Path(__file__).resolve()), "--peer", kind, str(case["points"]), arg, str(pout)], env=env)
+            if pr["rc"] != 0:
+                print(pr["err"], file=sys.stderr)
+            info = pr["out"].strip().splitlines()[-1] if pr["rc"] == 0 and pr["out"].strip() else "failed"
+            runs.setdefault(label, []).append({"case": case["name"], "tool": label, "seconds": pr["seconds"], "cpu": pr["cpu"],
+                                               "gb": pr["gb"], "rc": pr["rc"], "detail": info})
+    return [median_run(v) for v in runs.values()]
 
 
 def ratio(rows: list[dict], case: str, tool: str) -> float | None:
@@ -283,6 +301,12 @@ def ratio(rows: list[dict], case: str, tool: str) -> float | None:
     return mine[0]["seconds"] / peer[0]["seconds"] if mine and peer else None
 
 
+def runs_note(row: dict) -> str:
+    """``; median of 3 runs: 4.1, 4.4, 4.9 s`` for a row of several runs, else ""."""
+    runs = row.get("runs") or []
+    return f"; median of {len(runs)} runs: " + ", ".join(f"{x:.1f}" for x in sorted(runs)) + " s" if len(runs) > 1 else ""
+
+
 def tables(rows: list[dict], help_seconds: float) -> str:
     """The markdown tables: times, stages, targets."""
     lines = ["| case | tool | seconds | CPU s | peak GB | o3drbf / this | notes |", "|---|---|---|---|---|---|---|"]
@@ -290,7 +314,7 @@ def tables(rows: list[dict], help_seconds: float) -> str:
         q = ratio(rows, r["case"], r["tool"]) if r["tool"] != "o3drbf" else 1.0
         status = "" if r["rc"] == 0 else f" (exit {r['rc']})"
         lines.append(f"| {r['case']} | {r['tool']}{status} | {r['seconds']:.1f} | {r.get('cpu', float('nan')):.1f} | {r['gb']:.2f} | "
-                     f"{'-' if q is None else f'{q:.2f}'} | {r['detail']} |")
+                     f"{'-' if q is None else f'{q:.2f}'} | {r['detail']}{runs_note(r)} |")
     lines += ["", f"`o3drbf --help`: {help_seconds:.2f} s", ""]
     mine = [r for r in rows if r["tool"] == "o3drbf" and r["stages"]]
     names = []
@@ -332,6 +356,8 @@ def main(argv=None) -> int:
     ap.add_argument("--no-peers", action="store_true", help="o3drbf only")
     ap.add_argument("--case", default=None, metavar="TEXT",
                     help="only the cases whose name contains TEXT (e.g. 'scan'); the others are not generated")
+    ap.add_argument("--repeats", type=int, default=REPEATS, metavar="N",
+                    help=f"runs of each tool, in turn, on the cases that take seconds; the median is shown (default {REPEATS})")
     ap.add_argument("--peer", nargs=4, metavar=("KIND", "POINTS", "ARG", "OUT"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.peer:
@@ -354,7 +380,7 @@ def main(argv=None) -> int:
     help_seconds = timed(o3drbf_command() + ["--help"], env=env)["seconds"]
     rows = []
     for case in cases:
-        rows += run_case(case, folder, env, peers=not args.no_peers)
+        rows += run_case(case, folder, env, peers=not args.no_peers, repeats=args.repeats if case["name"] in REPEATED else 1)
         print(f"  {case['name']}: " + ", ".join(f"{r['tool']} {r['seconds']:.1f} s" for r in rows if r["case"] == case["name"]),
               flush=True)
     load1 = os.getloadavg()

@@ -49,3 +49,15 @@ def test_the_user_path_tables_say_which_targets_are_met():
     rows += [dict(row, case="scan 27k", seconds=4.0, gb=0.6), dict(row, case="scan 27k", tool="Poisson d8", seconds=2.0, gb=0.3)]
     text = user_path.tables(rows, 0.2)
     assert "| scan 27k vs Poisson d8 | 2.00 | 1.5 | no |" in text
+
+
+def test_the_user_path_keeps_each_tools_median_run():
+    import user_path
+
+    runs = [{"seconds": s, "rc": 0, "cpu": s, "gb": 0.5} for s in (5.0, 3.0, 4.0)]
+    mid = user_path.median_run(runs)
+    assert mid["seconds"] == 4.0 and mid["cpu"] == 4.0 and mid["runs"] == [5.0, 3.0, 4.0]
+    assert user_path.median_run(runs[:2])["seconds"] == 3.0  # an even count: the lower middle
+    failed = dict(runs[0], rc=1, seconds=0.1)
+    assert user_path.median_run([failed, *runs[1:]])["seconds"] == 3.0  # a failed run is not a time
+    assert user_path.runs_note(mid) == "; median of 3 runs: 3.0, 4.0, 5.0 s" and user_path.runs_note(runs[0]) == ""
