@@ -17,7 +17,7 @@ import numpy as np
 from o3drbf.progress import progress_bar
 from o3drbf.validation import check_number
 
-__all__ = ["extract_mesh", "evaluate_grid", "refine_on_edges", "grid_for", "mesh_evaluator", "GRID_EVALUATION_MIN", "MESH_EPS",
+__all__ = ["extract_mesh", "mesh_lattice", "evaluate_grid", "refine_on_edges", "grid_for", "mesh_evaluator", "GRID_EVALUATION_MIN", "MESH_EPS",
            "AUTO_RESOLUTION", "auto_resolution", "CORNER_GAP", "REFINE_TOL"]
 
 #: ``resolution="auto"`` (the default here and in ``o3drbf.DEFAULTS``, whose
@@ -83,7 +83,7 @@ def grid_for(bounds, resolution: int | None = 128, voxel_size: float | None = No
     return origin, h, tuple(int(c) + 1 for c in cells)
 
 
-def mesh_evaluator(surface, eps: float = MESH_EPS, min_centres: int = GRID_EVALUATION_MIN, shared=None):
+def mesh_evaluator(surface, eps: float = MESH_EPS, min_centres: int = GRID_EVALUATION_MIN, shared=None, box=None):
     """The fastest adequate ``(box points (M, 3), gradient) -> f [, grad f]`` for meshing.
 
     One grid sum (:class:`o3drbf.solvers.fast.GridSum`) for values and
@@ -110,6 +110,10 @@ def mesh_evaluator(surface, eps: float = MESH_EPS, min_centres: int = GRID_EVALU
         that grid sum holds exactly these centres there and was made with the
         same ``eps`` and ``min_centres``, it serves this surface too, with
         this surface's weights (zero at the centres it lacks): no new grid sum.
+    box : (2, 3) array_like, optional
+        Corners (box coordinates) of the lattice the evaluator will serve
+        (:func:`mesh_lattice`): a new grid sum covers it from the start, an
+        evaluator's own or a shared one is enlarged to it (``func.cover``).
 
     Returns
     -------
@@ -121,6 +125,8 @@ def mesh_evaluator(surface, eps: float = MESH_EPS, min_centres: int = GRID_EVALU
 
     kept = getattr(surface, "meshing", None)
     if kept is not None and getattr(kept, "settings", None) == (eps, min_centres):
+        if box is not None:
+            kept.cover(*np.asarray(box, dtype=float))
         return kept
 
     def table(pts, gradient=False):
@@ -152,7 +158,7 @@ def mesh_evaluator(surface, eps: float = MESH_EPS, min_centres: int = GRID_EVALU
                 fast.HAVE_GRID and isinstance(kernel, MultiOrder) and kernel.coefficients is not None):
             return table
         try:
-            op = fast.GridSum(kernel, surface.centres, eps=eps)
+            op = fast.GridSum(kernel, surface.centres, eps=eps, box=box)
         except (MemoryError, ValueError):
             return table
     from o3drbf.rbf.sums import polynomial_basis
@@ -176,6 +182,8 @@ def mesh_evaluator(surface, eps: float = MESH_EPS, min_centres: int = GRID_EVALU
     grid.settings = (eps, min_centres)
     if hasattr(surface, "meshing"):
         surface.meshing = grid  # kept for the next caller (the robust pass, then marching cubes)
+    if box is not None:  # (a new grid sum covers it already)
+        op.cover(*np.asarray(box, dtype=float))
     return grid
 
 
@@ -310,6 +318,31 @@ def extraction_box(normalization, bounds, voxel_size=None):
     return box, h_box
 
 
+def mesh_lattice(normalization, bounds, resolution: int | None = None, voxel_size: float | None = None):
+    """The marching-cubes lattice :func:`extract_mesh` evaluates f on, in box coordinates.
+
+    Parameters
+    ----------
+    normalization : Normalization
+        The surface's (data to box coordinates).
+    bounds : (2, 3) array_like
+        The region to extract, in data coordinates.
+    resolution : int, optional
+        Cells along the longest side (used when ``voxel_size`` is None).
+    voxel_size : float, optional
+        Grid spacing in data units.
+
+    Returns
+    -------
+    origin : (3,) array
+    spacing : float
+    shape : tuple of 3 ints
+        Points per axis, the cell counts multiples of 8 (the narrow band's coarse levels).
+    """
+    box, h_box = extraction_box(normalization, bounds, voxel_size)
+    return grid_for(box, resolution if voxel_size is None else None, h_box, multiple=8)
+
+
 def extract_mesh(
     surface,
     resolution: int | str = "auto",
@@ -390,12 +423,9 @@ def extract_mesh(
     if bounds is None:
         c = norm.inverse(surface.centres)
         bounds = [c.min(axis=0), c.max(axis=0)]
-    box, h_box = extraction_box(norm, bounds, voxel_size)
     if isinstance(resolution, str) and resolution == "auto":
         resolution = auto_resolution(float(surface.metadata.get("mean_spacing", float("nan"))))
-    resolution_ = resolution if voxel_size is None else None
-    # Round cell counts to a multiple of 8 so the narrow band has coarse levels.
-    origin, h, shape = grid_for(box, resolution_, h_box, multiple=8)
+    origin, h, shape = mesh_lattice(norm, bounds, resolution, voxel_size)
 
     func = mesh_evaluator(surface) if evaluator is None else evaluator
     cover = getattr(func, "cover", None)

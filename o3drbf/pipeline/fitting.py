@@ -219,7 +219,7 @@ def mesh_cells(extract: ExtractOptions, cset: ConstraintSet) -> float:
 
 
 def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = FitOptions(), *, progress: bool = False,
-                checked: bool = False, resolution: float | None = None):
+                checked: bool = False, resolution: float | None = None, lattice=None):
     """Solve for the implicit function; robustly reweighted by default.
 
     The robust pass (:func:`o3drbf.constraints.robust.robust_reweight`) refits
@@ -241,6 +241,11 @@ def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = F
         automatic one for the constraint spacing); a fast solve stops where
         its residual moves the surface by a small fraction of such a cell
         (:func:`o3drbf.solvers.fast.mesh_tolerance`).
+    lattice : (2, 3) array_like, optional
+        Corners, in box coordinates, of the lattice the fit will be meshed on
+        (:func:`o3drbf.pipeline.meshing.mesh_lattice_box`): the meshing grid sum the
+        robust pass builds covers it from the start, so marching cubes needs
+        no larger grid and, after a fit without refits, no new potential.
 
     Returns
     -------
@@ -313,7 +318,7 @@ def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = F
             # The grid marching cubes will use (a fast fit's own evaluation grid, or a new one), built now: the
             # first residuals, f and grad f, come from it (not from a grid ten times as fine for gradients alone),
             # and the refits' residuals too (below).
-            last["grid"] = mesh_evaluator(surface)
+            last["grid"] = mesh_evaluator(surface, box=lattice)
 
         if loose is not None:
             session.options["rtol"] = loose

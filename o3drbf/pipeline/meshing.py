@@ -11,7 +11,7 @@ from o3drbf.options import ConfidenceOptions, ExtractOptions, auto_resolution
 from o3drbf.pointset import PointSet
 from o3drbf.surface import ImplicitSurface
 
-__all__ = ["MIN_VOXEL_CELLS", "check_voxel_size", "extraction_bounds", "mesh_surface", "colour", "mesh_confidence"]
+__all__ = ["MIN_VOXEL_CELLS", "check_voxel_size", "extraction_bounds", "mesh_lattice_box", "mesh_surface", "colour", "mesh_confidence"]
 
 log = logging.getLogger("o3drbf")
 
@@ -52,6 +52,19 @@ def extraction_bounds(data: PointSet, options: ExtractOptions) -> np.ndarray:
     lo, hi = data.bounds
     pad = 0.05 * float((hi - lo).max())
     return np.stack([lo - pad, hi + pad])
+
+
+def mesh_lattice_box(cset, options: ExtractOptions = ExtractOptions()) -> np.ndarray | None:
+    """The corners ((2, 3), box coordinates) of the lattice :func:`mesh_surface` will evaluate a fit of
+    ``cset`` on with these options, or None when ``cset`` has no bounds (the mesh then covers the centres)."""
+    from o3drbf.extract import mesh_lattice
+
+    bounds = options.bounds if options.bounds is not None else cset.bounds
+    if bounds is None:
+        return None
+    resolution = auto_resolution(float(cset.spacing)) if options.resolution == "auto" else options.resolution
+    origin, h, shape = mesh_lattice(cset.normalization, bounds, resolution, options.voxel_size)
+    return np.array([origin, origin + (np.array(shape) - 1) * h])
 
 
 def mesh_surface(surface: ImplicitSurface, options: ExtractOptions = ExtractOptions(), *, progress: bool = False):

@@ -10,7 +10,7 @@ from o3drbf.mesh.metrics import drop_specks
 from o3drbf.options import SPECK_SPACINGS, Options, auto_resolution
 from o3drbf.pipeline.constraints import build_constraints
 from o3drbf.pipeline.fitting import check_fit_memory, early_fit_check, fit_surface, mesh_cells
-from o3drbf.pipeline.meshing import check_voxel_size, colour, extraction_bounds, mesh_confidence, mesh_surface
+from o3drbf.pipeline.meshing import check_voxel_size, colour, extraction_bounds, mesh_confidence, mesh_lattice_box, mesh_surface
 from o3drbf.pipeline.normals import check_given_normals, ensure_normals
 from o3drbf.pipeline.outliers import remove_outliers
 from o3drbf.pipeline.parameters import choose_parameters
@@ -126,7 +126,8 @@ def reconstruct(points, normals=None, *, cameras=None, point_camera=None, colors
     plan = check_fit_memory(cset, params, opts.fit, opts.extract if extract_mesh else None)  # seconds, before the fit
     with stages.stage("fit"):
         surface, sol, robust = fit_surface(cset, params, opts.fit, progress=progress, checked=plan is not None,
-                                           resolution=mesh_cells(opts.extract, cset) if extract_mesh else None)
+                                           resolution=mesh_cells(opts.extract, cset) if extract_mesh else None,
+                                           lattice=mesh_lattice_box(cset, opts.extract) if extract_mesh else None)
     surface.metadata["seed"] = seed
     mesh, specks = None, 0
     if extract_mesh:

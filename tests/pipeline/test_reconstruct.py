@@ -210,6 +210,46 @@ def test_a_fit_with_a_fast_evaluator_takes_its_robust_residuals_from_the_meshing
     assert r.mesh.is_watertight()
 
 
+def test_the_meshing_grid_covers_the_lattice_from_the_start(monkeypatch):
+    """A fast fit below FAST_EVALUATION_MIN without robust rounds: the meshing grid sum the robust pass
+    builds covers marching cubes' lattice from the start, so one FFT grid serves the residuals and the mesh
+    and one potential of the final weights serves both (a grid over the centres and a second potential on a
+    larger one before).  The mesh lies on f = 0 by direct sums."""
+    from o3drbf import extract
+    from o3drbf.solvers.fast import fftgrid, grid
+
+    evaluators, meshes, potentials = [], {}, []
+    real_evaluator, real_mesh, real_potential = extract.mesh_evaluator, grid.GridSum._mesh, fftgrid.Mesh.potential
+
+    def recording(*args, **kwargs):
+        evaluators.append(real_evaluator(*args, **kwargs))
+        return evaluators[-1]
+
+    def mesh(self, lo, hi):
+        m = real_mesh(self, lo, hi)
+        meshes.setdefault(id(self), {})[id(m)] = m
+        return m
+
+    def potential(self, *args, **kwargs):
+        potentials.append(id(self))
+        return real_potential(self, *args, **kwargs)
+
+    monkeypatch.setattr(extract, "mesh_evaluator", recording)
+    monkeypatch.setattr(grid.GridSum, "_mesh", mesh)
+    monkeypatch.setattr(fftgrid.Mesh, "potential", potential)
+    p, n = Torus(0.6, 0.25).sample(6000, noise=0.002, seed=4)
+    r = o3drbf.reconstruct(p, n, surface_count=1500, resolution=48, solver="fast")
+    assert r.report.solver == "fast" and r.report.robust["rounds"] == 0 and r.mesh.is_watertight()
+    ops = {id(e.operator) for e in evaluators}
+    assert len(ops) == 1 and evaluators[0].kind == "grid"
+    own = meshes[ops.pop()]
+    assert len(own) == 1, len(own)
+    assert potentials.count(next(iter(own))) == 1
+    v = r.surface.normalization.forward(np.asarray(r.mesh.vertices))
+    f, g = r.surface.evaluate_box(v, gradient=True)
+    assert np.median(np.abs(f) / np.linalg.norm(g, axis=1)) < 0.01 * 2.0 / 48
+
+
 def _torus_with_strays():
     """15,000 points of a torus with 1 % noise, 3 % of them thrown off: a fit with robust rounds."""
     p, n = Torus().sample(15_000, noise=0.01, seed=3)
@@ -272,7 +312,7 @@ def test_the_robust_refits_below_fast_evaluation_share_the_first_fits_meshing_gr
     real_grid = grid.GridSum.__init__
 
     def counting(self, kernel, centres, eps=grid.DEFAULT_EPS, *args, **kwargs):
-        if eps == MESH_EPS and not args and not kwargs:
+        if eps == MESH_EPS and not args and set(kwargs) <= {"box"}:
             meshing.append(len(centres))
         real_grid(self, kernel, centres, eps, *args, **kwargs)
 

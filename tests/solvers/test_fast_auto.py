@@ -98,6 +98,24 @@ def test_grid_chosen_under_budget_with_the_exterior_sphere(delta, tau):
     assert np.linalg.norm(grads - rg) / np.linalg.norm(rg) < 1e-5
 
 
+def test_a_grid_sum_made_for_a_box_covers_it_from_the_start():
+    """GridSum(box=...) builds its one grid over the centres and the box (no grid over the centres first),
+    with the values of direct sums there; a box beyond the budget leaves the centres' grid, as without it."""
+    kernel = MultiOrder(10.0, 0.005)
+    c, _, _ = user_problem(3000, kernel)
+    lo, hi = np.array([-1.4, -1.4, -0.8]), np.array([1.4, 1.4, 0.8])
+    plain = fast.GridSum(kernel, c, eps=1e-6)
+    op = fast.GridSum(kernel, c, eps=1e-6, box=(lo, hi))
+    assert op.mesh.covers(np.array([lo, hi])) and not plain.mesh.covers(np.array([lo, hi]))
+    assert len(op._meshes) == 1 and op.cover(lo, hi) and len(op._meshes) == 1
+    t = lo + (hi - lo) * np.random.default_rng(10).uniform(size=(3000, 3))
+    w = np.random.default_rng(9).normal(size=len(c))
+    ref = kernel_sum(kernel, c, w, t)
+    assert np.linalg.norm(op.evaluate(w, t) - ref) / np.linalg.norm(ref) < 1e-6
+    far = fast.GridSum(kernel, c, eps=1e-6, box=(lo, hi + 1e3))
+    assert far.mesh.shape == plain.mesh.shape
+
+
 def test_cover_builds_one_evaluation_grid_for_a_box():
     """After cover(lo, hi), targets anywhere in the box use one grid (no per-call enlargement)
     and the values stay right; cover is a no-op when the centres' grid already covers the box."""

@@ -189,6 +189,10 @@ class GridSum:
         products) or sum it afresh at every product by the cell list (no
         memory); default :func:`~o3drbf.solvers.fast.neighbours.store_near`
         of its estimated size.  The looser companions follow this choice.
+    box : (2, 3) array_like, optional
+        Corners of a box of targets the grid covers from the start (as
+        :meth:`cover` would enlarge it, when within the budget; else the
+        centres' box alone, as without it).
 
     Raises
     ------
@@ -200,7 +204,7 @@ class GridSum:
 
     def __init__(self, kernel: Kernel, centres, eps: float = DEFAULT_EPS, neighbours: int | None = None,
                  budget: int | None = None, tree: cKDTree | None = None, outside=None, radius: float | None = None,
-                 store: bool | None = None):
+                 store: bool | None = None, box=None):
         if not HAVE_GRID:
             raise ValueError("the grid backend needs numba, which is not installed")
         if not isinstance(kernel, MultiOrder) or kernel.coefficients is None:
@@ -231,6 +235,12 @@ class GridSum:
         self._fixed_budget = None if budget is None else int(budget)
         self.budget = grid_budget(budget)
         self._eval_mesh = None
+        if box is not None:  # the targets' box too, at once (no grid over the centres alone first)
+            b = np.asarray(box, dtype=float)
+            wide = np.minimum(lo, b[0]), np.maximum(hi, b[1])
+            if Mesh.nbytes(*wide, h, half, single) <= self.budget:
+                lo, hi = wide
+                need = Mesh.nbytes(lo, hi, h, half, single)
         if need > self.budget:
             raise MemoryError(f"the grid of fast sums over {n:,} centres needs ~{need / 2**30:.1f} GB of FFT arrays "
                               f"(budget {self.budget / 2**30:.1f} GB)")
