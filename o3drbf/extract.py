@@ -18,7 +18,7 @@ from o3drbf.progress import progress_bar
 from o3drbf.validation import check_number
 
 __all__ = ["extract_mesh", "mesh_lattice", "evaluate_grid", "refine_on_edges", "grid_for", "mesh_evaluator", "GRID_EVALUATION_MIN", "MESH_EPS",
-           "AUTO_RESOLUTION", "auto_resolution", "CORNER_GAP", "REFINE_TOL"]
+           "AUTO_RESOLUTION", "auto_resolution", "CORNER_GAP", "REFINE_TOL", "NEWTON_DONE"]
 
 #: ``resolution="auto"`` (the default here and in ``o3drbf.DEFAULTS``, whose
 #: ``AUTO_SIZES`` holds these): marching-cubes cells per surface-constraint
@@ -478,6 +478,11 @@ def extract_mesh(
 #: surface most vertices skip the last step).
 REFINE_TOL = 1e-3
 
+#: A vertex whose Newton step (with the gradient evaluated for its normal) moved it less than this
+#: fraction of its edge takes no more steps: Newton's next step would move it by about the square of
+#: this, times the edge over the surface's radius of curvature, well under ``REFINE_TOL``.
+NEWTON_DONE = 0.01
+
 #: Refined vertices stay this fraction of an edge away from its corners (0.01
 #: left slivers that Open3D's self-intersection test flags, on a ball three
 #: cells in radius).
@@ -497,6 +502,10 @@ def refine_on_edges(func, verts, vals, origin, h: float, level: float = 0.0, ste
     vertex and step; three leave a ball 3.3 cells in radius within 1e-5
     cells, where straight lines leave it 0.03 cells inside); a vertex whose
     last step moved it less than ``REFINE_TOL`` of its edge takes no more.
+    Where grad f is evaluated (``gradient``, from the second step) the step
+    is Newton's along the edge instead, when it stays inside the bracket,
+    and a vertex it moved less than ``NEWTON_DONE`` of its edge takes no
+    more (the next would move it by about the square of that).
     It never leaves its edge, nor comes closer to a corner than
     ``_REFINE_GAP`` of the edge (unless marching cubes put it closer): the
     triangles keep their cells and the mesh its topology.
@@ -564,6 +573,7 @@ def refine_on_edges(func, verts, vals, origin, h: float, level: float = 0.0, ste
         ta_, tb_, t_, fa_, fb_, kb_ = ta[act], tb[act], t[act], fa[act], fb[act], kept_b[act]
         p = a[act].astype(float)
         p[np.arange(len(p)), axis[act]] += t_
+        g = None
         if gradient and (step > 0 or int(steps) == 1):  # from the second step on a vertex is nearly there:
             ft, g = func(origin + p * h, gradient=True)  # its gradient there serves the normals
             grads[rows[act]] = g
@@ -578,11 +588,19 @@ def refine_on_edges(func, verts, vals, origin, h: float, level: float = 0.0, ste
         kb_ = same_as_a
         ta_, fa_ = np.where(same_as_a, t_, ta_), np.where(same_as_a, ft, fa_)
         tb_, fb_ = np.where(same_as_a, tb_, t_), np.where(same_as_a, fb_, ft)
-        new_t = np.clip(ta_ + (tb_ - ta_) * fa_ / (fa_ - fb_), lo[act], hi[act])
+        new_t = ta_ + (tb_ - ta_) * fa_ / (fa_ - fb_)
+        done = np.zeros(len(act), dtype=bool)
+        if g is not None:  # grad f known here: a Newton step along the edge where it stays inside the bracket
+            with np.errstate(divide="ignore", invalid="ignore"):
+                nt = t_ - ft / (g[np.arange(len(g)), axis[act]] * h)
+            inside = np.isfinite(nt) & (nt > np.minimum(ta_, tb_)) & (nt < np.maximum(ta_, tb_))
+            new_t = np.where(inside, nt, new_t)
+            done = inside & (np.abs(nt - t_) < NEWTON_DONE)
+        new_t = np.clip(new_t, lo[act], hi[act])
         ta[act], tb[act], fa[act], fb[act], kept_b[act] = ta_, tb_, fa_, fb_, kb_
         moved = np.abs(new_t - t_)
         t[act] = new_t
-        act = act[moved >= REFINE_TOL]
+        act = act[(moved >= REFINE_TOL) & ~done]
     v[rows, axis] = start + t
     if not gradient:
         return v
