@@ -1,8 +1,8 @@
 """One rule for progress bars: on when asked, off when ``O3DRBF_NO_PROGRESS=1``; compiled code's own printing kept off the terminal.
 
-Bars go to stderr through tqdm; log records are routed through
-:func:`tqdm.contrib.logging.logging_redirect_tqdm` by the command line so
-the two never interleave.  :func:`native_output_logged` catches what a
+Bars go to stderr through tqdm (its notebook bars inside IPython); log
+records are written through ``tqdm.write`` by the command line
+(:func:`logs_above_bars`) so the two never interleave.  :func:`native_output_logged` catches what a
 compiled library prints past Python (PoissonRecon's ``[WARNING] ... bad
 average roots``) and logs it as one line.
 """
@@ -12,8 +12,9 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import sys
 
-__all__ = ["progress_bar", "progress_enabled", "native_output_logged"]
+__all__ = ["progress_bar", "progress_enabled", "native_output_logged", "logs_above_bars"]
 
 
 @contextlib.contextmanager
@@ -96,7 +97,65 @@ def progress_bar(requested: bool, iterable=None, **options):
     """
     if not progress_enabled(requested):
         return iterable
-    from tqdm.auto import tqdm
-
     options.setdefault("leave", False)
-    return tqdm(iterable, **options)
+    return _tqdm_class()(iterable, **options)
+
+
+def _tqdm_class():
+    """tqdm's notebook-aware bar inside IPython, else its plain one (without importing the notebook
+    machinery, and asyncio with it, into a command-line process)."""
+    if "IPython" in sys.modules:
+        from tqdm.auto import tqdm
+    else:
+        from tqdm.std import tqdm
+    return tqdm
+
+
+class _BarSafeHandler(logging.StreamHandler):
+    """Writes a log record with ``tqdm.write``: above any progress bar, which it moves down."""
+
+    def emit(self, record):
+        try:
+            _tqdm_class().write(self.format(record), file=self.stream)
+            self.flush()
+        except (KeyboardInterrupt, SystemExit):
+            raise
+        except Exception:
+            self.handleError(record)
+
+
+@contextlib.contextmanager
+def logs_above_bars(logger: logging.Logger | None = None):
+    """Route ``logger``'s (default: the root logger's) console handlers through ``tqdm.write`` in the block.
+
+    The first handler writing to ``sys.stdout`` or ``sys.stderr`` gives its stream,
+    formatter and filters to one handler that writes above the progress bars; the
+    other console handlers are left out and every handler is restored afterwards
+    (what ``tqdm.contrib.logging.logging_redirect_tqdm`` does, without importing
+    tqdm's notebook and asyncio parts).
+
+    Examples
+    --------
+    >>> import logging
+    >>> log = logging.getLogger("o3drbf.example")
+    >>> log.addHandler(logging.StreamHandler(sys.stderr))
+    >>> with logs_above_bars(log):
+    ...     type(log.handlers[-1]).__name__
+    '_BarSafeHandler'
+    >>> type(log.handlers[-1]).__name__
+    'StreamHandler'
+    """
+    logger = logging.root if logger is None else logger
+    original = logger.handlers
+    console = [h for h in original if isinstance(h, logging.StreamHandler) and getattr(h, "stream", None) in (sys.stdout, sys.stderr)]
+    handler = _BarSafeHandler()
+    if console:
+        handler.setFormatter(console[0].formatter)
+        handler.stream = console[0].stream
+        for f in console[0].filters:
+            handler.addFilter(f)
+    logger.handlers = [h for h in original if h not in console] + [handler]
+    try:
+        yield
+    finally:
+        logger.handlers = original

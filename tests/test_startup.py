@@ -156,6 +156,27 @@ def test_help_loads_no_compiled_kernels_nor_scipy():
     assert out.split() == ["False", "False", "False"], out
 
 
+def test_log_lines_go_above_the_bars_without_tqdms_notebook_parts(tmp_path):
+    """The command line writes its log lines through ``tqdm.write`` (above any bar) and, outside IPython,
+    draws plain tqdm bars: neither tqdm's notebook module nor asyncio is imported."""
+    p, _ = Sphere(1.0).sample(800, seed=3)
+    write_points(tmp_path / "s.ply", p)  # no normals: a warning line
+    code = (
+        "import sys\n"
+        "import tqdm.std as T\n"
+        "write = T.tqdm.write.__func__\n"
+        "T.tqdm.write = classmethod(lambda cls, s, file=None, end='\\n', nolock=False: write(cls, '[tqdm] ' + s, file, end, nolock))\n"
+        "from o3drbf.cli.commands import main\n"
+        f"rc = main(['reconstruct', {str(tmp_path / 's.ply')!r}, '-o', {str(tmp_path / 'm.ply')!r}])\n"
+        "print(rc, 'asyncio' in sys.modules, 'tqdm.auto' in sys.modules)\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "O3DRBF_NO_PROGRESS": "0"})
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.split()[-3:] == ["0", "False", "False"], proc.stdout[-500:]
+    assert any(x.startswith("[tqdm] o3drbf: ") and "no normals" in x for x in proc.stderr.splitlines()), proc.stderr[-2000:]
+
+
 def test_the_process_command_line_freezes_the_collector_at_the_end_an_in_process_call_does_not(tmp_path):
     # argv=None (the console script, python -m o3drbf): gc.freeze() once the command is done, and the
     # outputs are whole; an in-process call with argv leaves the collector as it was.

@@ -450,13 +450,13 @@ def _main(argv: list[str] | None) -> int:
         return 2
     _check_args(parser, args)
     logging.basicConfig(level=logging.WARNING, format="o3drbf: %(message)s", stream=sys.stderr)
-    from tqdm.contrib.logging import logging_redirect_tqdm
+    from o3drbf.progress import logs_above_bars
 
     verbose = getattr(args, "verbose", False)
     try:
         # log lines (warnings too) never break into a progress bar; without -v
         # only o3drbf's own lines are shown (not Dask's nor Open3D's chatter)
-        with logging_redirect_tqdm(), _only_o3drbf_logs(verbose), _open3d_quiet(verbose), _warnings_as_log_lines(), _verbose(verbose):
+        with logs_above_bars(), _only_o3drbf_logs(verbose), _open3d_quiet(verbose), _warnings_as_log_lines(), _verbose(verbose):
             return _dispatch(parser, args)
     except MemoryError as exc:
         print(f"o3drbf: error: {_memory_message(exc, getattr(args, 'solver', None))}", file=sys.stderr)
