@@ -19,7 +19,7 @@ try:  # numba is a dependency, but the library still works (slower) without it
 except ImportError:  # pragma: no cover
     HAVE_NUMBA = False
 
-__all__ = ["HAVE_NUMBA", "direct_sum", "direct_sum_at_centres", "direct_matrix", "lower_single", "lower_pair", "lower_matrix_single", "supports", "check_sum_arrays", "table_sum", "supports_table", "KernelTable"]
+__all__ = ["HAVE_NUMBA", "direct_sum", "direct_sum_at_centres", "direct_matrix", "lower_single", "lower_pair", "lower_matrix_single", "supports", "check_sum_arrays", "table_sum", "table_matrix", "supports_table", "KernelTable"]
 
 # kernel codes
 _MULTIORDER, _GAUSSIAN, _THINPLATE = 0, 1, 2
@@ -606,6 +606,33 @@ if HAVE_NUMBA:
             grad[j, 0] = gx
             grad[j, 1] = gy
             grad[j, 2] = gz
+
+
+    @numba.njit(cache=True, parallel=True)
+    def _table_matrix(x, y, out, coef1, coef2, r1, r2, h1, h2, rt, c, tv, tg):
+        for j in numba.prange(y.shape[0]):
+            for i in range(x.shape[0]):
+                dx, dy, dz = x[i, 0] - y[j, 0], x[i, 1] - y[j, 1], x[i, 2] - y[j, 2]
+                v, _ = _table_eval(math.sqrt(dx * dx + dy * dy + dz * dz), coef1, coef2, r1, r2, h1, h2, rt, c, tv, tg, False)
+                out[i, j] = v
+
+
+def table_matrix(table: KernelTable, x, y, dtype=np.float64):
+    """Approximate (tabulated) dense kernel matrix ``phi(|x_i - y_j|)``, Fortran order: ``direct_matrix``'s
+    contract without ``lower``, the entries to the tables' accuracy (for a preconditioner, never to solve)."""
+    x = np.ascontiguousarray(x, float)
+    y = np.ascontiguousarray(y, float)
+    for name, a in (("x", x), ("y", y)):
+        if a.ndim != 2 or a.shape[1] != 3:
+            raise ValueError(f"{name} must have shape (N, 3), got {a.shape}")
+        if not np.isfinite(a).all():
+            raise ValueError(f"{name} has NaN or infinite entries; compiled kernels need finite input")
+    dtype = np.dtype(dtype)
+    if dtype not in (np.float64, np.float32):
+        raise ValueError(f"dtype must be float64 or float32, got {dtype}")
+    out = np.empty((len(x), len(y)), dtype=dtype, order="F")
+    _table_matrix(x, y, out, *table.args())
+    return out
 
 
 def supports_table(kernel) -> bool:

@@ -34,7 +34,7 @@ def polynomial_basis(points: np.ndarray, degree: int) -> np.ndarray:
 
 def kernel_matrix(
     kernel: Kernel, x: np.ndarray, y: np.ndarray | None = None, order: str = "F", compiled: bool = True,
-    lower: bool = False, dtype=np.float64,
+    lower: bool = False, dtype=np.float64, table=None,
 ) -> np.ndarray:
     """Phi_ij = phi(|x_i - y_j|) as a dense array (Fortran order by default,
     so LAPACK can factor it in place).
@@ -44,11 +44,18 @@ def kernel_matrix(
     then evaluates only that half and leaves the upper triangle uninitialised.
     ``dtype=np.float32`` stores the entries, evaluated in double, in single
     precision (half the memory; for a preconditioner's products).
+    ``table`` (an :class:`o3drbf.rbf.compiled.KernelTable` of ``kernel``, not
+    with ``lower``): the entries from its tables, to their accuracy (faster;
+    for a preconditioner, never for a solve's own matrix).
     """
     x = np.asarray(x, dtype=float)
     if lower and y is not None:
         raise ValueError("lower=True is for the symmetric matrix of x with itself; omit y")
     y = x if y is None else np.asarray(y, dtype=float)
+    if table is not None and not lower:
+        if order == "F":
+            return _direct.table_matrix(table, x, y, dtype=dtype)
+        return _direct.table_matrix(table, y, x, dtype=dtype).T
     if compiled and _direct.supports(kernel) and not (lower and np.dtype(dtype) != np.float64):
         if order == "F":
             return _direct.direct_matrix(kernel, x, y, lower=lower, dtype=dtype)

@@ -203,3 +203,22 @@ def test_a_single_precision_kernel_matrix_is_the_double_one_rounded_once(order, 
         from o3drbf.rbf.compiled import direct_matrix
 
         direct_matrix(kernel, x, x, lower=True, dtype=np.float32)
+
+
+@pytest.mark.parametrize("order", ["F", "C"])
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_a_tabulated_kernel_matrix_is_the_exact_one_to_the_tables_accuracy(order, dtype, rng):
+    """kernel_matrix(table=...) (the preconditioner's coarse-to-fine block): every entry within 1e-8 of the
+    exact matrix's largest (and within float32's rounding in single precision), in either order."""
+    from o3drbf.rbf.compiled import KernelTable
+
+    kernel = MultiOrder(10, 0.01)
+    x = rng.uniform(-1, 1, (70, 3))
+    y = rng.uniform(-1, 1, (40, 3))
+    y[0] = x[0]  # r = 0 (the series)
+    y[1] = x[1] + 1e-7
+    exact = kernel_matrix(kernel, x, y, compiled=False)
+    got = kernel_matrix(kernel, x, y, order=order, dtype=dtype, table=KernelTable(kernel))
+    assert got.shape == (70, 40) and got.dtype == dtype and got.flags[order + "_CONTIGUOUS"]
+    tol = 1e-8 if dtype == np.float64 else 1e-7
+    assert np.abs(got - exact).max() < tol * np.abs(exact).max()
