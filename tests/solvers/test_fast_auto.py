@@ -98,6 +98,30 @@ def test_grid_chosen_under_budget_with_the_exterior_sphere(delta, tau):
     assert np.linalg.norm(grads - rg) / np.linalg.norm(rg) < 1e-5
 
 
+def test_from_table_eps_the_far_centres_are_summed_from_the_kernels_tables(monkeypatch):
+    """A grid sum at TABLE_EPS or looser sums its far centres (the sphere) at targets from the kernel's tables,
+    within its tolerance of direct sums, values and gradients; a tighter one sums them exactly."""
+    from o3drbf.solvers.fast import grid
+
+    kernel = MultiOrder(10.0, 0.005)
+    c, _, _ = user_problem(3000, kernel)
+    w = np.random.default_rng(9).normal(size=len(c))
+    t = c[:-64][::5] + 0.01
+    ref, ref_g = kernel_sum(kernel, c, w, t, gradient=True)
+    tables = []
+    real = grid.kernel_sum
+    monkeypatch.setattr(grid, "kernel_sum", lambda *a, **k: tables.append(k.get("table")) or real(*a, **k))
+    loose = fast.GridSum(kernel, c, eps=grid.TABLE_EPS)
+    assert len(loose.outside) == 64
+    v, g = loose.evaluate(w, t, gradient=True)
+    assert tables and all(x is not None for x in tables)
+    assert np.linalg.norm(v - ref) < grid.TABLE_EPS * np.linalg.norm(ref)
+    assert np.linalg.norm(g - ref_g) < 10 * grid.TABLE_EPS * np.linalg.norm(ref_g)  # the grid's gradients: ~10 eps
+    tables.clear()
+    fast.GridSum(kernel, c, eps=grid.TABLE_EPS / 100).evaluate(w, t)
+    assert tables == [None]
+
+
 def test_a_grid_sum_made_for_a_box_covers_it_from_the_start():
     """GridSum(box=...) builds its one grid over the centres and the box (no grid over the centres first),
     with the values of direct sums there; a box beyond the budget leaves the centres' grid, as without it."""
