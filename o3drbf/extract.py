@@ -112,8 +112,9 @@ def mesh_evaluator(surface, eps: float = MESH_EPS, min_centres: int = GRID_EVALU
         this surface's weights (zero at the centres it lacks): no new grid sum.
     box : (2, 3) array_like, optional
         Corners (box coordinates) of the lattice the evaluator will serve
-        (:func:`mesh_lattice`): a new grid sum covers it from the start, an
-        evaluator's own or a shared one is enlarged to it (``func.cover``).
+        (:func:`mesh_lattice`): a new grid sum covers it from the start.  A
+        surface's own evaluator is left as it is (marching cubes enlarges it,
+        once the fit's memory is freed).
 
     Returns
     -------
@@ -125,8 +126,6 @@ def mesh_evaluator(surface, eps: float = MESH_EPS, min_centres: int = GRID_EVALU
 
     kept = getattr(surface, "meshing", None)
     if kept is not None and getattr(kept, "settings", None) == (eps, min_centres):
-        if box is not None:
-            kept.cover(*np.asarray(box, dtype=float))
         return kept
 
     def table(pts, gradient=False):
@@ -182,8 +181,6 @@ def mesh_evaluator(surface, eps: float = MESH_EPS, min_centres: int = GRID_EVALU
     grid.settings = (eps, min_centres)
     if hasattr(surface, "meshing"):
         surface.meshing = grid  # kept for the next caller (the robust pass, then marching cubes)
-    if box is not None:  # (a new grid sum covers it already)
-        op.cover(*np.asarray(box, dtype=float))
     return grid
 
 

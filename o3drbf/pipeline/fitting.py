@@ -244,8 +244,10 @@ def fit_surface(cset: ConstraintSet, params: Parameters, options: FitOptions = F
     lattice : (2, 3) array_like, optional
         Corners, in box coordinates, of the lattice the fit will be meshed on
         (:func:`o3drbf.pipeline.meshing.mesh_lattice_box`): the meshing grid sum the
-        robust pass builds covers it from the start, so marching cubes needs
-        no larger grid and, after a fit without refits, no new potential.
+        robust pass builds (below ``FAST_EVALUATION_MIN``) covers it from the
+        start, so marching cubes needs no larger grid and, after a fit without
+        refits, no new potential.  A surface's own evaluator (from
+        ``FAST_EVALUATION_MIN``) is enlarged by marching cubes, after the fit.
 
     Returns
     -------

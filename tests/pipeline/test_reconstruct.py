@@ -250,6 +250,29 @@ def test_the_meshing_grid_covers_the_lattice_from_the_start(monkeypatch):
     assert np.median(np.abs(f) / np.linalg.norm(g, axis=1)) < 0.01 * 2.0 / 48
 
 
+def test_an_evaluator_of_its_own_is_enlarged_by_marching_cubes_not_during_the_fit(monkeypatch):
+    """From FAST_EVALUATION_MIN (made 1,000 here) a fit's own evaluator is left on its centres' grid by the
+    fit, whose solver structures are still alive there (the larger grid would add to the fit's peak memory);
+    marching cubes enlarges it afterwards."""
+    from o3drbf import build_constraints, choose_parameters
+    from o3drbf.options import ExtractOptions, FitOptions
+    from o3drbf.pipeline import fitting
+    from o3drbf.pipeline.meshing import mesh_lattice_box, mesh_surface
+    from o3drbf.pointset import PointSet
+
+    monkeypatch.setattr(fitting, "FAST_EVALUATION_MIN", 1000)
+    p, n = Torus(0.6, 0.25).sample(6000, noise=0.002, seed=4)
+    data = PointSet.create(p, n)
+    cset = build_constraints(data)
+    lattice = mesh_lattice_box(cset, ExtractOptions(resolution=48))
+    surface, _, _ = fitting.fit_surface(cset, choose_parameters(data, cset), FitOptions(solver="fast"), resolution=48,
+                                        lattice=lattice)
+    op = surface.evaluator.fast_sum
+    assert not op.mesh.covers(lattice)
+    mesh = mesh_surface(surface, ExtractOptions(resolution=48))
+    assert op.mesh.covers(lattice) and mesh.is_watertight()
+
+
 def _torus_with_strays():
     """15,000 points of a torus with 1 % noise, 3 % of them thrown off: a fit with robust rounds."""
     p, n = Torus().sample(15_000, noise=0.01, seed=3)
