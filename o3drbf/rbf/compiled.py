@@ -446,6 +446,18 @@ def direct_sum_at_centres(kernel, centres, weights, index) -> tuple[np.ndarray, 
     return np.ascontiguousarray(total[:, 0]), np.ascontiguousarray(total[:, 1:])
 
 
+def _matrix_points(x, y):
+    """``x`` and ``y`` as contiguous (N, 3) float arrays of finite points, or ValueError naming the bad one."""
+    x = np.ascontiguousarray(x, float)
+    y = np.ascontiguousarray(y, float)
+    for name, a in (("x", x), ("y", y)):
+        if a.ndim != 2 or a.shape[1] != 3:
+            raise ValueError(f"{name} must have shape (N, 3), got {a.shape}")
+        if not np.isfinite(a).all():
+            raise ValueError(f"{name} has NaN or infinite entries; compiled kernels need finite input")
+    return x, y
+
+
 def direct_matrix(kernel, x, y, lower: bool = False, dtype=np.float64):
     """Compiled dense kernel matrix, Fortran order.
 
@@ -456,13 +468,7 @@ def direct_matrix(kernel, x, y, lower: bool = False, dtype=np.float64):
     ``lower``).
     """
     code, p = _params(kernel)
-    x = np.ascontiguousarray(x, float)
-    y = np.ascontiguousarray(y, float)
-    for name, a in (("x", x), ("y", y)):
-        if a.ndim != 2 or a.shape[1] != 3:
-            raise ValueError(f"{name} must have shape (N, 3), got {a.shape}")
-        if not np.isfinite(a).all():
-            raise ValueError(f"{name} has NaN or infinite entries; compiled kernels need finite input")
+    x, y = _matrix_points(x, y)
     dtype = np.dtype(dtype)
     if dtype not in (np.float64, np.float32) or (lower and dtype != np.float64):
         raise ValueError(f"dtype must be float64, or float32 without lower=True; got {dtype} (lower={lower})")
@@ -620,13 +626,7 @@ if HAVE_NUMBA:
 def table_matrix(table: KernelTable, x, y, dtype=np.float64):
     """Approximate (tabulated) dense kernel matrix ``phi(|x_i - y_j|)``, Fortran order: ``direct_matrix``'s
     contract without ``lower``, the entries to the tables' accuracy (for a preconditioner, never to solve)."""
-    x = np.ascontiguousarray(x, float)
-    y = np.ascontiguousarray(y, float)
-    for name, a in (("x", x), ("y", y)):
-        if a.ndim != 2 or a.shape[1] != 3:
-            raise ValueError(f"{name} must have shape (N, 3), got {a.shape}")
-        if not np.isfinite(a).all():
-            raise ValueError(f"{name} has NaN or infinite entries; compiled kernels need finite input")
+    x, y = _matrix_points(x, y)
     dtype = np.dtype(dtype)
     if dtype not in (np.float64, np.float32):
         raise ValueError(f"dtype must be float64 or float32, got {dtype}")
