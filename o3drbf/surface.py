@@ -134,11 +134,7 @@ class ImplicitSurface(DataCoordinates):
     def _table(self):
         from o3drbf.rbf import compiled as _direct
 
-        if not _direct.supports_table(self.kernel):
-            return None
-        if getattr(self, "_kernel_table", None) is None or self._kernel_table[0] is not self.kernel:
-            self._kernel_table = (self.kernel, _direct.KernelTable(self.kernel))
-        return self._kernel_table[1]
+        return _direct.kernel_table(self.kernel)
 
     # -- persistence --------------------------------------------------------------
     def save(self, path: str | os.PathLike) -> Path:

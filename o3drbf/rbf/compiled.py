@@ -8,6 +8,7 @@ is the reference it is tested against.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -19,7 +20,7 @@ try:  # numba is a dependency, but the library still works (slower) without it
 except ImportError:  # pragma: no cover
     HAVE_NUMBA = False
 
-__all__ = ["HAVE_NUMBA", "direct_sum", "direct_sum_at_centres", "direct_matrix", "lower_single", "lower_pair", "lower_matrix_single", "supports", "check_sum_arrays", "table_sum", "table_matrix", "supports_table", "KernelTable"]
+__all__ = ["HAVE_NUMBA", "direct_sum", "direct_sum_at_centres", "direct_matrix", "lower_single", "lower_pair", "lower_matrix_single", "supports", "check_sum_arrays", "table_sum", "table_matrix", "supports_table", "kernel_table", "KernelTable"]
 
 # kernel codes
 _MULTIORDER, _GAUSSIAN, _THINPLATE = 0, 1, 2
@@ -637,6 +638,16 @@ def table_matrix(table: KernelTable, x, y, dtype=np.float64):
 
 def supports_table(kernel) -> bool:
     return HAVE_NUMBA and kernel.name == "multiorder"
+
+
+def kernel_table(kernel) -> KernelTable | None:
+    """The tables of ``kernel`` (:class:`KernelTable`), built once for equal kernels; None where it has none."""
+    return _kernel_table(kernel) if supports_table(kernel) else None
+
+
+@functools.lru_cache(maxsize=8)
+def _kernel_table(kernel) -> KernelTable:
+    return KernelTable(kernel)
 
 
 def table_sum(table: KernelTable, centres, weights, targets, gradient: bool = False):

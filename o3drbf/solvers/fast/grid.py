@@ -595,11 +595,7 @@ class GridSum:
 
     def _far_table(self):
         """The kernel's tables for the far centres' sums at targets (:meth:`evaluate`), from ``TABLE_EPS`` on; else None."""
-        if self.eps < TABLE_EPS or not compiled.supports_table(self.kernel):
-            return None
-        if self.__dict__.get("_table") is None:
-            self._table = compiled.KernelTable(self.kernel)
-        return self._table
+        return None if self.eps < TABLE_EPS else compiled.kernel_table(self.kernel)
 
     def _tolerance_for(self, eps) -> float:
         """The tolerance a request at ``eps`` is served at (:func:`served_tolerance`)."""

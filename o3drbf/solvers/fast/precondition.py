@@ -365,8 +365,7 @@ class TwoLevel:
         self.update = None
         if not self.exact and n * len(self.coarse) * 4 <= dense_budget:  # in single precision, like the coarse factor
             # from the kernel's tables where it has them: a preconditioner's entries need not be exact
-            table = compiled.KernelTable(kernel) if compiled.supports_table(kernel) else None
-            self.block = kernel_matrix(kernel, x, xc, order="C", dtype=np.float32, table=table)
+            self.block = kernel_matrix(kernel, x, xc, order="C", dtype=np.float32, table=compiled.kernel_table(kernel))
         elif not self.exact:
             self.update = fast.from_subset(self.coarse)
         self.post_rows = None
