@@ -1,5 +1,3 @@
-import sys
+from o3drbf.cli.commands import run
 
-from o3drbf.cli.commands import main
-
-sys.exit(main())
+run()

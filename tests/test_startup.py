@@ -200,6 +200,38 @@ def test_the_process_command_line_freezes_the_collector_at_the_end_an_in_process
         assert len(mesh.triangles) > 0 and mesh.is_watertight()
 
 
+@pytest.mark.parametrize("thread", [False, True])
+def test_the_console_script_ends_the_process_after_atexit_without_tearing_the_interpreter_down(tmp_path, thread):
+    # run(): atexit handlers run and the output is whole, but the interpreter's teardown (which flushes a file
+    # object left open) is skipped; with a non-daemon thread still alive the interpreter ends as usual.
+    p, n = Sphere(1.0).sample(300, seed=3)
+    write_points(tmp_path / "sphere.ply", p, n)
+    argv = ["o3drbf", "reconstruct", str(tmp_path / "sphere.ply"), "-o", str(tmp_path / "m.ply"), "--resolution", "16", "-q"]
+    left_open = tmp_path / "left_open.txt"
+    code = (
+        "import atexit, os, sys, threading, time\n"
+        f"left_open = open({str(left_open)!r}, 'w')\n"
+        "left_open.write('teardown')\n"
+        "atexit.register(print, 'atexit')\n"
+        + (f"threading.Thread(target=lambda: [time.sleep(0.05) for _ in iter(lambda: os.path.exists({str(tmp_path / 'm.ply')!r}), True)]).start()\n"
+           if thread else "")  # alive until the command has written its output
+        + f"sys.argv = {argv!r}\n"
+        "from o3drbf.cli import run\n"
+        "run()\n"
+        "print('after run')\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.split() == ["atexit"], proc.stdout
+    assert left_open.read_text() == "teardown" * thread
+    import open3d as o3d
+
+    assert o3d.io.read_triangle_mesh(str(tmp_path / "m.ply")).is_watertight()
+    bad = subprocess.run([sys.executable, "-m", "o3drbf", "reconstruct", str(tmp_path / "none.ply"), "-o", str(tmp_path / "n.ply")],
+                         capture_output=True, text=True, timeout=300)
+    assert bad.returncode == 2 and bad.stderr.strip().startswith("o3drbf: error: input file not found"), bad.stderr
+
+
 def test_the_command_line_turns_numpys_huge_page_advice_off_unless_the_user_set_it():
     code = "import o3drbf.cli, numpy, os; print(numpy._core.multiarray._get_madvise_hugepage(), os.environ.get('NUMPY_MADVISE_HUGEPAGE'))"
     env = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE"}

@@ -4,6 +4,6 @@ from o3drbf.startup import no_hugepage_advice
 
 no_hugepage_advice()  # before NumPy is imported (see o3drbf.startup)
 
-from o3drbf.cli.commands import build_parser, main  # noqa: E402
+from o3drbf.cli.commands import build_parser, main, run  # noqa: E402
 
-__all__ = ["main", "build_parser"]
+__all__ = ["main", "run", "build_parser"]

@@ -19,11 +19,12 @@ import time
 import warnings
 from contextlib import contextmanager
 from pathlib import Path
+from typing import NoReturn
 
 from o3drbf.cli.arguments import add_options, non_negative_int, options_from_args
 from o3drbf.io.files import MESH_FORMATS
 
-__all__ = ["main", "build_parser", "check_reconstruct_files", "tiled_summary", "options_from_args", "add_option_arguments"]
+__all__ = ["main", "run", "build_parser", "check_reconstruct_files", "tiled_summary", "options_from_args", "add_option_arguments"]
 
 log = logging.getLogger("o3drbf")
 
@@ -140,6 +141,32 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if argv is None:
             _leave_for_exit()
+
+
+def run() -> NoReturn:
+    """The console script ``o3drbf`` and ``python -m o3drbf``: :func:`main` on the process's arguments, then
+    the end of the process.
+
+    Once the command is done, ``atexit`` handlers run and stdout and stderr are flushed as at any exit; the
+    process then ends at once (:func:`os._exit`) instead of tearing the interpreter down, which frees every
+    module's objects and runs Open3D's and Numba's library destructors for nothing.  Outputs are closed and
+    renamed into place before :func:`main` returns.  Where a thread other than a daemon is still alive, the
+    interpreter ends as usual (it waits for that thread).
+    """
+    code = main()
+    import atexit
+    import os
+    import threading
+
+    if any(t.is_alive() and not t.daemon for t in threading.enumerate() if t is not threading.main_thread()):
+        sys.exit(code)
+    atexit._run_exitfuncs()  # what the interpreter runs first at its end
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed pipe (``| head``): nothing more can be written there
+            pass
+    os._exit(code)
 
 
 def _leave_for_exit() -> None:

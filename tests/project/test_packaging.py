@@ -123,7 +123,7 @@ def test_wheel_installs_the_viewer_inside_the_package(dist):
     meta = zipfile.ZipFile(wheel).read(next(n for n in names if n.endswith("METADATA"))).decode()
     assert "Requires-Dist: pyvista" in meta  # compare and view work after a plain pip install
     entry = zipfile.ZipFile(wheel).read(next(n for n in names if n.endswith("entry_points.txt"))).decode()
-    assert "o3drbf = o3drbf.cli:main" in entry
+    assert "o3drbf = o3drbf.cli:run" in entry
 
 
 def test_sdist_holds_the_sources_the_wheel_is_built_from(dist):
