@@ -13,10 +13,11 @@ from __future__ import annotations
 
 import importlib
 import sys
+import threading
 import types
 
 __all__ = ["defer_open3d_plotly", "PLOTLY_MODULE", "no_hugepage_advice", "HUGEPAGE_VARIABLE",
-           "prefer_numba_workqueue", "THREADING_PRIORITY"]
+           "prefer_numba_workqueue", "THREADING_PRIORITY", "ready_numba_in_background"]
 
 #: NumPy's environment variable (read when NumPy is imported): "0" stops it advising the kernel to back
 #: large arrays with transparent huge pages.
@@ -123,3 +124,44 @@ def prefer_numba_workqueue() -> bool:
     if numba is not None:  # imported before o3drbf: its configuration has read the environment already
         numba.config.THREADING_LAYER_PRIORITY = list(THREADING_PRIORITY)
     return True
+
+
+_numba_ready: threading.Thread | None = None
+
+
+def _ready_numba() -> None:
+    try:
+        from numba.core.compiler_lock import global_compiler_lock
+        from numba.core.registry import cpu_target
+
+        with global_compiler_lock:  # as Numba's own compilation holds it
+            cpu_target.typing_context.refresh()
+            cpu_target.target_context.refresh()
+    except Exception:  # noqa: BLE001 - the first compiled function readies Numba itself, and says what fails
+        pass
+
+
+def ready_numba_in_background() -> threading.Thread | None:
+    """Ready Numba's compiler in a daemon thread, once per process, while the caller goes on.
+
+    Numba's first compiled function of a process (even one loaded from its cache) waits while
+    Numba installs its CPU target's typing and lowering registries, which imports most of Numba's
+    own modules.  The pipeline starts this thread after reading its input, so that the
+    installation overlaps the scans' registration and the outlier tests (whose NumPy, SciPy and
+    Open3D calls release the interpreter's lock much of the time).  The thread holds Numba's
+    compiler lock, as Numba's compilation does; a compiled function called meanwhile waits for it.
+
+    Returns
+    -------
+    threading.Thread or None
+        The thread (the same one on every call), or None without Numba.
+    """
+    global _numba_ready
+    if _numba_ready is None:
+        try:
+            import numba  # noqa: F401
+        except ImportError:
+            return None
+        _numba_ready = threading.Thread(target=_ready_numba, name="o3drbf-numba-ready", daemon=True)
+        _numba_ready.start()
+    return _numba_ready

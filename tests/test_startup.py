@@ -268,3 +268,24 @@ def test_a_users_threading_layer_is_kept():
                           capture_output=True, text=True, timeout=300,
                           env={**os.environ, "NUMBA_THREADING_LAYER_PRIORITY": "omp workqueue tbb"})
     assert proc.returncode == 0 and proc.stdout.split() == ["omp", "workqueue", "tbb"], proc.stderr[-2000:]
+
+
+def test_numbas_set_up_runs_in_a_thread_once_started_by_the_pipeline(monkeypatch):
+    # In a new process the thread installs Numba's registries (numba.np.arraymath is one of the modules it
+    # imports), is a daemon, and is the same thread on a second call.
+    out = _python(
+        "import sys, numba, o3drbf\n"
+        "from o3drbf.startup import ready_numba_in_background\n"
+        "before = 'numba.np.arraymath' in sys.modules\n"
+        "t = ready_numba_in_background(); t.join()\n"
+        "print(before, 'numba.np.arraymath' in sys.modules, ready_numba_in_background() is t, t.daemon)\n"
+    )
+    assert out.split() == ["False", "True", "True", "True"], out
+    import o3drbf
+    import o3drbf.pipeline.run as run
+
+    calls = []
+    monkeypatch.setattr(run, "ready_numba_in_background", lambda: calls.append(1))
+    p, n = Sphere(1.0).sample(400, seed=1)
+    o3drbf.reconstruct(p, n, surface_count=150, resolution=12)
+    assert calls == [1]

@@ -19,6 +19,7 @@ from o3drbf.pipeline.records import Reconstruction, Report, StageTimer
 from o3drbf.pipeline.register import register_scans
 from o3drbf.pointset import PointSet
 from o3drbf.prep.normalize import check_spans_volume
+from o3drbf.startup import ready_numba_in_background
 
 __all__ = ["reconstruct"]
 
@@ -101,6 +102,7 @@ def reconstruct(points, normals=None, *, cameras=None, point_camera=None, colors
         extract_mesh = bool(option_values.pop("extract"))
     opts = Options.create(options, **option_values).validate()
     stages = StageTimer()
+    ready_numba_in_background()  # Numba's set-up beside the stages before its first compiled kernel
     with stages.stage("read"):
         data = points if isinstance(points, PointSet) else PointSet.create(points, normals, cameras=cameras, point_camera=point_camera, colors=colors)
         data, merged = merge_repeated(data)
