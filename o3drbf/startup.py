@@ -127,6 +127,7 @@ def prefer_numba_workqueue() -> bool:
 
 
 _numba_ready: threading.Thread | None = None
+_numba_ready_lock = threading.Lock()
 
 
 def _ready_numba() -> None:
@@ -146,10 +147,11 @@ def ready_numba_in_background() -> threading.Thread | None:
 
     Numba's first compiled function of a process (even one loaded from its cache) waits while
     Numba installs its CPU target's typing and lowering registries, which imports most of Numba's
-    own modules.  The pipeline starts this thread after reading its input, so that the
-    installation overlaps the scans' registration and the outlier tests (whose NumPy, SciPy and
-    Open3D calls release the interpreter's lock much of the time).  The thread holds Numba's
-    compiler lock, as Numba's compilation does; a compiled function called meanwhile waits for it.
+    own modules.  :func:`o3drbf.reconstruct` starts this thread as it begins, so that the
+    installation runs beside its first stages (the input's checks, the scans' registration, the
+    outlier tests), whose NumPy, SciPy and Open3D calls leave the interpreter's lock free part of
+    the time.  The thread holds Numba's compiler lock, as Numba's compilation does; a compiled
+    function called meanwhile waits for it.
 
     Returns
     -------
@@ -157,11 +159,12 @@ def ready_numba_in_background() -> threading.Thread | None:
         The thread (the same one on every call), or None without Numba.
     """
     global _numba_ready
-    if _numba_ready is None:
-        try:
-            import numba  # noqa: F401
-        except ImportError:
-            return None
-        _numba_ready = threading.Thread(target=_ready_numba, name="o3drbf-numba-ready", daemon=True)
-        _numba_ready.start()
+    with _numba_ready_lock:  # (reconstructions in several threads start one)
+        if _numba_ready is None:
+            try:
+                import numba  # noqa: F401
+            except ImportError:
+                return None
+            _numba_ready = threading.Thread(target=_ready_numba, name="o3drbf-numba-ready", daemon=True)
+            _numba_ready.start()
     return _numba_ready
