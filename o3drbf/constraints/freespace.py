@@ -119,7 +119,7 @@ def _median_spacing(points: np.ndarray, sample: int = 20_000, seed: int = 0) -> 
     """Median nearest-neighbour distance (robust to sparse outliers), from a seeded subset."""
     rng = np.random.default_rng(seed)
     q = points if len(points) <= sample else points[rng.choice(len(points), sample, replace=False)]
-    d, _ = cKDTree(points).query(q, k=2)
+    d, _ = cKDTree(points).query(q, k=2, workers=-1)
     s = float(np.median(d[:, 1]))
     if not s > 0:
         raise ValueError("points are (mostly) duplicates: their median spacing is zero; remove duplicates first")
@@ -192,7 +192,7 @@ def _zbuffer_test(cam, points, seen, spacing, tolerance, empty="unknown"):
 
 def _supported(points: np.ndarray, spacing: float, k: int = SUPPORT_NEIGHBOURS) -> np.ndarray:
     """(N,) bool: the ``k``-th neighbour lies within ``SUPPORT_SPACINGS`` spacings (not an isolated point)."""
-    d, _ = cKDTree(points).query(points, k=k + 1)
+    d, _ = cKDTree(points).query(points, k=k + 1, workers=-1)
     return d[:, -1] <= SUPPORT_SPACINGS * spacing
 
 
@@ -323,7 +323,7 @@ def free_space_check(
         used += 1
         conflicts += free
         src = np.flatnonzero(seen[:, j])
-        d, _ = cKDTree(pts[src]).query(pts, k=1, distance_upper_bound=radius)
+        d, _ = cKDTree(pts[src]).query(pts, k=1, distance_upper_bound=radius, workers=-1)
         confirmations += np.isfinite(d)
     if used == 0:
         raise ValueError(

@@ -174,7 +174,7 @@ def estimate_noise(points, k: int = 20, max_points: int = 4000, seed: int = 0) -
 def _local_noise(pts: np.ndarray, k: int, max_points: int, rng) -> tuple[float, float]:
     """(median local quadric-fit RMS, median k-neighbourhood radius)."""
     query = np.arange(len(pts)) if len(pts) <= max_points else np.sort(rng.choice(len(pts), max_points, replace=False))
-    dist, nb = cKDTree(pts).query(pts[query], k=k)
+    dist, nb = cKDTree(pts).query(pts[query], k=k, workers=-1)
     local = pts[nb] - pts[nb].mean(axis=1, keepdims=True)  # (Q, k, 3)
     _, _, vt = np.linalg.svd(local, full_matrices=False)  # rows of vt: principal axes
     uvw = np.einsum("qkd,qjd->qkj", local, vt)  # coordinates in the PCA frame; z = smallest axis

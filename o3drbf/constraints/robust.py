@@ -206,9 +206,9 @@ class _Neighbourhoods:
         if len(changed) == 0 or len(changed) > n // 8:
             return geometric_residuals(surface, self.points), n
         if self.radius is None:
-            spacing = float(np.median(cKDTree(self.points).query(self.points, k=2)[0][:, 1])) if n > 1 else 0.0
+            spacing = float(np.median(cKDTree(self.points).query(self.points, k=2, workers=-1)[0][:, 1])) if n > 1 else 0.0
             self.radius = self.radius_spacings * spacing
-        gap = cKDTree(self.points[changed]).query(self.points)[0]
+        gap = cKDTree(self.points[changed]).query(self.points, workers=-1)[0]
         gap[changed] = 0.0
         near = gap <= self.radius
         if near.sum() > n // 2:

@@ -74,7 +74,7 @@ def _neighbour_components(points: np.ndarray, k: int) -> np.ndarray:
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
-    _, nb = cKDTree(points).query(points, k=k + 1)
+    _, nb = cKDTree(points).query(points, k=k + 1, workers=-1)
     rows = np.repeat(np.arange(len(points)), k)
     graph = sparse.coo_matrix((np.ones(rows.size), (rows, nb[:, 1:].ravel())), shape=(len(points), len(points)))
     return connected_components(graph, directed=False)[1]

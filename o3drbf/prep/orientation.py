@@ -100,7 +100,7 @@ def _pair_scores(points: np.ndarray, normals: np.ndarray, k: int):
     0 or -1), and its sign flips with either normal.
     """
     k = min(k, len(points) - 1)
-    _, nb = cKDTree(points).query(points, k=k + 1)
+    _, nb = cKDTree(points).query(points, k=k + 1, workers=-1)
     i = np.repeat(np.arange(len(points)), k)
     j = nb[:, 1:].ravel()
     d = points[j] - points[i]
@@ -154,7 +154,7 @@ def _pieces(points: np.ndarray, k: int) -> np.ndarray:
     from scipy.sparse.csgraph import connected_components
 
     k = min(k, len(points) - 1)
-    _, nb = cKDTree(points).query(points, k=k + 1)
+    _, nb = cKDTree(points).query(points, k=k + 1, workers=-1)
     rows = np.repeat(np.arange(len(points)), k)
     graph = sparse.coo_matrix((np.ones(rows.size), (rows, nb[:, 1:].ravel())), shape=(len(points), len(points)))
     return connected_components(graph, directed=False)[1]
