@@ -32,20 +32,37 @@ except ImportError:  # pragma: no cover
     prange = range
 
 
-#: The fast sums' compiled loops (near field, CSR product, the grid's spreading and gathering) may reorder
-#: sums and fuse multiply-adds, so that they vectorize: rounding-level changes only.  The cell-list pass and
-#: the restriction of a larger near field share these flags, so they value a pair alike.
+#: The fast sums' compiled loops (near field, the grid's spreading and gathering) may reorder sums and
+#: fuse multiply-adds, so that they vectorize: rounding-level changes only.  The cell-list pass and the
+#: restriction of a larger near field share these flags, so they value a pair alike.
 LOOP_MATH = {"reassoc", "contract"}
+#: The CSR product's flags: fused multiply-adds, no reordering.  Reordering lets LLVM vectorize a row's sum
+#: with gathers of ``x``, slower than scalar loads on some processors
+#: (benchmarks/recorded/fast_solver.md, session 32); four running sums keep the scalar loop off the
+#: add's latency instead.
+CSR_MATH = {"contract"}
 
 
-@njit(cache=True, parallel=True, fastmath=LOOP_MATH)
+@njit(cache=True, parallel=True, fastmath=CSR_MATH)
 def _csr_matvec(indptr, indices, data, x, out):
-    # Unsigned column indices (no negative-index wrap per read) and a row's sum in any order: it vectorizes.
+    # Unsigned column indices (no negative-index wrap per read); each row in four running sums, in a fixed order.
     for i in prange(out.shape[0]):
-        acc = 0.0
-        for k in range(indptr[i], indptr[i + 1]):
-            acc += np.float64(data[k]) * x[np.uint64(indices[k])]
-        out[i] += acc
+        a0 = 0.0
+        a1 = 0.0
+        a2 = 0.0
+        a3 = 0.0
+        k = indptr[i]
+        end = indptr[i + 1]
+        while k + 4 <= end:
+            a0 += np.float64(data[k]) * x[np.uint64(indices[k])]
+            a1 += np.float64(data[k + 1]) * x[np.uint64(indices[k + 1])]
+            a2 += np.float64(data[k + 2]) * x[np.uint64(indices[k + 2])]
+            a3 += np.float64(data[k + 3]) * x[np.uint64(indices[k + 3])]
+            k += 4
+        while k < end:
+            a0 += np.float64(data[k]) * x[np.uint64(indices[k])]
+            k += 1
+        out[i] += (a0 + a1) + (a2 + a3)
 
 
 def csr_matvec(a, x, out=None) -> np.ndarray:
