@@ -613,8 +613,8 @@ def test_the_second_coarse_correction_leaves_no_residual_at_the_coarse_centres()
     """With a capped coarse level the preconditioner corrects the coarse weights again after the local
     step, from the residual left at the coarse centres: with exact products (a dense stand-in) that
     residual is then zero (up to the rounding of the Cholesky factor, kept in single precision), which the one-sided scheme leaves
-    large.  The solve with it reaches the dense solution; a coarse level that is not capped takes no
-    second correction.  (What it saves, fewer iterations at the mesh tolerance from about 30,000
+    large.  The solve with it reaches the dense solution.  A coarse level that is not capped takes the
+    second correction from its stored coarse-to-fine block, and none without one.  (What it saves, fewer iterations at the mesh tolerance from about 30,000
     centres, is measured by benchmarks/fast_system.py: benchmarks/recorded/fast_solver.md, sessions 22-23.)"""
     from o3drbf.solvers.fast.precondition import TwoLevel
 
@@ -630,7 +630,14 @@ def test_the_second_coarse_correction_leaves_no_residual_at_the_coarse_centres()
         z = p(r)
         left[post] = np.linalg.norm((r - op.matrix @ z - lam * z)[p.coarse]) / np.linalg.norm(r[p.coarse])
     assert left[True] < 1e-4 and left[False] > 1e-2, left
-    assert TwoLevel(op, lam, exact_below=0, max_coarse=len(c) // 8).info["post_coarse"] is False  # not capped
+    # Not capped: the correction takes the coarse rows from the stored coarse-to-fine block, with the same effect;
+    # with neither a cap nor a stored block, no second correction.
+    uncapped = {"exact_below": 0, "max_coarse": len(c) // 8}
+    p = TwoLevel(op, lam, **uncapped)
+    assert p.info["post_coarse"] and p.info["coarse_update"] == "dense block"
+    z = p(r)
+    assert np.linalg.norm((r - op.matrix @ z - lam * z)[p.coarse]) < 1e-4 * np.linalg.norm(r[p.coarse])
+    assert TwoLevel(op, lam, dense_budget=0, **uncapped).info["post_coarse"] is False
     sol = fast.solve(kernel, c, y, lam, rtol=1e-9, operator=op, max_iterations=300, preconditioner=pre)
     assert sol.info["converged"] and sol.info["preconditioner"]["post_coarse"]
     ref = solve(kernel, c, y, lam, method="dense")

@@ -210,9 +210,10 @@ def coarse_size(n: int, settings: "TwoLevelSettings") -> tuple[int, int]:
 
 
 def second_correction(n: int, settings: "TwoLevelSettings") -> bool:
-    """Whether a :class:`TwoLevel` on ``n`` centres with these settings takes the second coarse correction:
-    where the coarse level is capped below ``n / coarse_ratio`` (so never exact, and Cholesky-factored
-    unless nested), there it saves more iterations than it costs."""
+    """Whether a :class:`TwoLevel` on ``n`` centres with these settings takes the second coarse correction
+    from a grid product's coarse rows: where the coarse level is capped below ``n / coarse_ratio`` (so never
+    exact, and Cholesky-factored unless nested), there it saves more iterations than it costs.  (Where the
+    coarse-to-fine block is stored, the correction takes its rows from the block instead.)"""
     mc, nested = coarse_size(n, settings)
     return bool(settings.post_coarse and not nested and mc < n // settings.coarse_ratio)
 
@@ -293,10 +294,14 @@ class TwoLevel:
     post_coarse : bool
         After the local step, correct the coarse centres' weights once more
         from the residual left at them (the product's rows at the coarse
-        centres at ``post_eps``, one more Cholesky solve): coarse, local,
-        coarse.  Only where the coarse level is capped below ``N /
-        coarse_ratio`` (from about 48,000 centres), where it saves more
-        iterations than it costs; not with nested steps.
+        centres, one more Cholesky solve): coarse, local, coarse.  Where the
+        coarse-to-fine block is stored (``dense_budget``, up to about
+        20,000 centres) those rows are the block's columns, cheap beside a
+        product; where the coarse level is capped below ``N /
+        coarse_ratio`` (from about 48,000 centres, :func:`second_correction`)
+        they come from a grid product at ``post_eps``.  Between the two
+        (a fast sum for the coarse-to-fine update and no cap), and with
+        nested steps, no second correction.
     post_eps : float
         Tolerance of that product (its rows at the coarse centres only,
         :meth:`~o3drbf.solvers.fast.grid.GridSum.rows`).
@@ -325,7 +330,14 @@ class TwoLevel:
         self.fast, self.lam, self.inner, self.eps = fast, np.asarray(lam, float), int(inner), eps
         t0 = time.perf_counter()
         mc, self.nested = coarse_size(n, st)
-        post = second_correction(n, st)
+        # The coarse centres first: whether the coarse-to-fine block is stored decides the second correction.
+        if select == "random" and mc < n:
+            self.coarse = np.sort(np.random.default_rng(0).choice(n, mc, replace=False))
+        else:
+            self.coarse = _uniform_subset(x, mc)
+        self.exact = len(self.coarse) == n
+        stores_block = not self.exact and n * len(self.coarse) * 4 <= dense_budget  # in single precision, like the coarse factor
+        post = second_correction(n, st) or bool(st.post_coarse and not self.nested and stores_block)
         self.damping = float(st.damping)
 
         def near_diagonal(phir):  # the local step's diagonal, damped
@@ -345,10 +357,6 @@ class TwoLevel:
         self.near_diag = np.asarray(diag, dtype=float)
         self.radius = radius
         # Coarse level.
-        if select == "random" and mc < n:
-            self.coarse = np.sort(np.random.default_rng(0).choice(n, mc, replace=False))
-        else:
-            self.coarse = _uniform_subset(x, mc)
         xc = x[self.coarse]
         self.factor = self.inner_level = None
         if self.nested:
@@ -360,16 +368,16 @@ class TwoLevel:
             self._sub_rtol = float(nested_rtol)
         else:
             self.factor = coarse_matrix_factor(kernel, xc, self.lam[self.coarse])
-        self.exact = len(self.coarse) == n
         self.block = None
         self.update = None
-        if not self.exact and n * len(self.coarse) * 4 <= dense_budget:  # in single precision, like the coarse factor
-            # from the kernel's tables where it has them: a preconditioner's entries need not be exact
+        if stores_block:  # from the kernel's tables where it has them: a preconditioner's entries need not be exact
             self.block = kernel_matrix(kernel, x, xc, order="C", dtype=np.float32, table=compiled.kernel_table(kernel))
         elif not self.exact:
             self.update = fast.from_subset(self.coarse)
         self.post_rows = None
-        if post:
+        if post and self.block is not None:  # the block's columns are the coarse rows: Phi[C, :] z = block^T z
+            self.post_rows = lambda z, b=self.block: (z.astype(np.float32) @ b).astype(float)
+        elif post:
             rows = getattr(fast, "rows", None)  # a grid sum: only the coarse rows of the product
             self.post_rows = rows(self.coarse, eps=st.post_eps) if rows is not None \
                 else (lambda z, c=self.coarse, e=st.post_eps: fast.matvec(z, eps=e)[c])
