@@ -184,27 +184,29 @@ def _icp(src: np.ndarray, src_normals: np.ndarray, tgt: np.ndarray, tgt_normals:
     return T
 
 
-def _overlap(samples: list, normals: list, reach: float) -> tuple[list, np.ndarray]:
-    """For each scan, its sample points matched on another scan within ``reach``; and all the matches' |residuals|."""
+def _overlap(samples: list, normals: list, reach: float, trees: list | None = None) -> tuple[list, np.ndarray]:
+    """For each scan, its sample points matched on another scan within ``reach``; and all the matches' |residuals|.
+    ``trees[k]``, when given, is the KD-tree of ``_others(samples, k)``."""
     kept, resid = [], []
     for k in range(len(samples)):
         tgt = _others(samples, k)
-        ok, r, _ = _plane_residuals(samples[k], normals[k], tgt, _others(normals, k), cKDTree(tgt), reach)
+        ok, r, _ = _plane_residuals(samples[k], normals[k], tgt, _others(normals, k), cKDTree(tgt) if trees is None else trees[k], reach)
         kept.append(ok)
         resid.append(np.abs(r))
     return kept, np.concatenate(resid)
 
 
-def _consistency(samples: list, normals: list, pairs: list, reach: float) -> float:
+def _consistency(samples: list, normals: list, pairs: list, reach: float, trees: list | None = None) -> float:
     """Median |point-to-plane| distance of the overlap points ``pairs[k]`` of each scan to the other scans.
 
     A point that no longer finds a match counts as ``reach`` (sliding scans
-    apart does not look consistent).
+    apart does not look consistent).  ``trees`` as in :func:`_overlap`.
     """
     values = []
     for k in range(len(samples)):
         tgt = _others(samples, k)
-        ok, r, _ = _plane_residuals(samples[k][pairs[k]], normals[k][pairs[k]], tgt, _others(normals, k), cKDTree(tgt), reach)
+        tree = cKDTree(tgt) if trees is None else trees[k]
+        ok, r, _ = _plane_residuals(samples[k][pairs[k]], normals[k][pairs[k]], tgt, _others(normals, k), tree, reach)
         values.append(np.minimum(np.abs(r), reach))
         values.append(np.full(int((~ok).sum()), reach))
     v = np.concatenate(values)
@@ -282,14 +284,15 @@ def refine_registration(points, point_camera, n_cameras: int | None = None, *, t
     allp = np.vstack(samples)
     spacing = float(np.median(cKDTree(allp).query(allp[:: max(1, len(allp) // 20000)], k=2)[0][:, 1]))
     # the scans' present disagreement sets the scale of the robust loss and how far a match may be
-    _, resid = _overlap(samples, normals, 3.0 * spacing)
+    trees = [cKDTree(_others(samples, k)) for k in range(len(samples))]  # the scans as given: for the three tests below
+    _, resid = _overlap(samples, normals, 3.0 * spacing, trees)
     if len(resid) < 12 * len(scans):
         return Registration(identity, False, float("nan"), float("nan"), np.zeros(n_cameras), 0, len(scans),
                             f"{len(scans)} scans left as they were: they hardly overlap", params)
     scale = max(1.4826 * float(np.median(resid)), 0.05 * spacing)  # the median |r| of a Gaussian is 0.67 sigma
     reach = 2.0 * spacing + 4.0 * scale
-    pairs, _ = _overlap(samples, normals, reach)
-    before = _consistency(samples, normals, pairs, reach)
+    pairs, _ = _overlap(samples, normals, reach, trees)
+    before = _consistency(samples, normals, pairs, reach, trees)
 
     T = [np.eye(4) for _ in scans]
     cur = [x.copy() for x in samples]
