@@ -11,10 +11,11 @@ Small pure functions over ``(N, 3)`` point arrays and Open3D legacy
 - :func:`mesh_report` -- counts, topology (manifoldness, Euler
   characteristic, genus, components), area and volume.
 
-Point-to-mesh distances use Open3D's ``RaycastingScene``, which works in
-float32; coordinates are shifted to the mesh's bounding-box centre first so
-that the absolute error stays near ``1e-7`` times the mesh size, wherever the
-mesh sits.  Mesh sampling is done here, in NumPy, so that a ``seed`` fixes it.
+The fitness error and :func:`point_distances` are exact, in double precision
+(:mod:`o3drbf.mesh.nearest`).  The comparisons' point-to-mesh distances use
+Open3D's ``RaycastingScene``, which works in float32; coordinates are shifted
+to the mesh's bounding-box centre first so that the absolute error stays near
+``1e-7`` times the mesh size, wherever the mesh sits.  Mesh sampling is done here, in NumPy, so that a ``seed`` fixes it.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from scipy.spatial import cKDTree
 
 from o3drbf.mesh.arrays import mesh_arrays, raycasting_scene, triangle_components, unique_edges
 from o3drbf.mesh.intersections import nonmanifold_vertices, self_intersecting_pairs
+from o3drbf.mesh.nearest import point_mesh_distance
 from o3drbf.validation import as_points, check_number
 
 __all__ = [
@@ -167,12 +169,12 @@ def fitness_error(points: Any, mesh: Any) -> dict[str, float]:
 
     Notes
     -----
-    Distances come from ``open3d.t.geometry.RaycastingScene.compute_distance``
-    (float32, after centring on the mesh's bounding box).
+    Distances come from :func:`o3drbf.mesh.nearest.point_mesh_distance`
+    (exact, double precision).
     """
     pts = as_points(points, name="points")
     verts, tris = mesh_arrays(mesh)
-    d = _Surface(verts, tris).distance(pts)
+    d = point_mesh_distance(pts, verts, tris)
     return {"mean": float(d.mean()), "rms": float(np.sqrt(np.mean(d * d))), "max": float(d.max())}
 
 
@@ -189,8 +191,8 @@ def point_distances(points: Any, mesh: Any) -> np.ndarray:
     Returns
     -------
     (N,) ndarray of float
-        In the units of the points (float32 ``RaycastingScene`` after
-        centring on the mesh's bounding box, as :func:`fitness_error`).
+        In the units of the points (:func:`o3drbf.mesh.nearest.point_mesh_distance`,
+        as :func:`fitness_error`).
 
     Raises
     ------
@@ -200,7 +202,7 @@ def point_distances(points: Any, mesh: Any) -> np.ndarray:
     """
     pts = as_points(points, name="points")
     verts, tris = mesh_arrays(mesh)
-    return _Surface(verts, tris).distance(pts)
+    return point_mesh_distance(pts, verts, tris)
 
 
 # --------------------------------------------------------------------------
