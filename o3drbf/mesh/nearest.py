@@ -94,34 +94,27 @@ def _dist2_segment(px, py, pz, dx, dy, dz):
     return qx * qx + qy * qy + qz * qz
 
 
-@njit(cache=True, parallel=True)
-def _boxes(verts, tris, bmin, bmax):
-    for t in prange(tris.shape[0]):
-        for a in range(3):
-            x0, x1, x2 = verts[tris[t, 0], a], verts[tris[t, 1], a], verts[tris[t, 2], a]
-            bmin[t, a] = min(x0, min(x1, x2))
-            bmax[t, a] = max(x0, max(x1, x2))
-
-
-@njit(cache=True)
-def _cell_range(bmin, bmax, t, a, origin, cell, dims):
-    lo = min(max(int(math.floor((bmin[t, a] - origin[a]) / cell)), 0), dims[a] - 1)
-    hi = min(max(int(math.floor((bmax[t, a] - origin[a]) / cell)), lo), dims[a] - 1)
+@njit(cache=True, inline="always")
+def _cell_range(verts, tris, t, a, origin, cell, dims):
+    """The cells ``lo..hi`` along axis ``a`` that triangle ``t``'s bounding box covers."""
+    x0, x1, x2 = verts[tris[t, 0], a], verts[tris[t, 1], a], verts[tris[t, 2], a]
+    lo = min(max(int(math.floor((min(x0, min(x1, x2)) - origin[a]) / cell)), 0), dims[a] - 1)
+    hi = min(max(int(math.floor((max(x0, max(x1, x2)) - origin[a]) / cell)), lo), dims[a] - 1)
     return lo, hi
 
 
 @njit(cache=True)
-def _bin_triangles(bmin, bmax, origin, cell, dims, max_covered):
+def _bin_triangles(verts, tris, origin, cell, dims, max_covered):
     """Counting sort of the (cell, triangle) entries of every triangle covering at most ``max_covered``
     cells: ``start`` (cells + 1,), the triangles ``ids`` by cell, and the other triangles ``big``."""
     ncell = dims[0] * dims[1] * dims[2]
     start = np.zeros(ncell + 1, dtype=np.int64)
-    small = np.zeros(bmin.shape[0], dtype=np.bool_)
+    small = np.zeros(tris.shape[0], dtype=np.bool_)
     nbig = 0
-    for t in range(bmin.shape[0]):
-        x0, x1 = _cell_range(bmin, bmax, t, 0, origin, cell, dims)
-        y0, y1 = _cell_range(bmin, bmax, t, 1, origin, cell, dims)
-        z0, z1 = _cell_range(bmin, bmax, t, 2, origin, cell, dims)
+    for t in range(tris.shape[0]):
+        x0, x1 = _cell_range(verts, tris, t, 0, origin, cell, dims)
+        y0, y1 = _cell_range(verts, tris, t, 1, origin, cell, dims)
+        z0, z1 = _cell_range(verts, tris, t, 2, origin, cell, dims)
         if (x1 - x0 + 1) * (y1 - y0 + 1) * (z1 - z0 + 1) > max_covered:
             nbig += 1
             continue
@@ -136,14 +129,14 @@ def _bin_triangles(bmin, bmax, origin, cell, dims, max_covered):
     ids = np.empty(start[ncell], dtype=np.int64)
     big = np.empty(nbig, dtype=np.int64)
     nbig = 0
-    for t in range(bmin.shape[0]):
+    for t in range(tris.shape[0]):
         if not small[t]:
             big[nbig] = t
             nbig += 1
             continue
-        x0, x1 = _cell_range(bmin, bmax, t, 0, origin, cell, dims)
-        y0, y1 = _cell_range(bmin, bmax, t, 1, origin, cell, dims)
-        z0, z1 = _cell_range(bmin, bmax, t, 2, origin, cell, dims)
+        x0, x1 = _cell_range(verts, tris, t, 0, origin, cell, dims)
+        y0, y1 = _cell_range(verts, tris, t, 1, origin, cell, dims)
+        z0, z1 = _cell_range(verts, tris, t, 2, origin, cell, dims)
         for x in range(x0, x1 + 1):
             for y in range(y0, y1 + 1):
                 for z in range(z0, z1 + 1):
@@ -245,13 +238,15 @@ def point_mesh_distance(points: Any, vertices: Any, triangles: Any) -> np.ndarra
         raise ValueError("the mesh has no triangles: no distance to it")
     if not len(pts):
         return np.zeros(0)
+    if not np.isfinite(verts).all():
+        raise ValueError("the mesh has NaN or infinite vertex coordinates; remove or fix those vertices first")
     if tris.min() < 0 or tris.max() >= len(verts):
         raise ValueError(f"triangle indices must lie in [0, {len(verts)}); fix the triangles or pass the matching vertices")
-    bmin, bmax = np.empty((len(tris), 3)), np.empty((len(tris), 3))
-    _boxes(verts, tris, bmin, bmax)
-    origin = bmin.min(axis=0)
-    span = np.maximum(bmax.max(axis=0) - origin, 1e-300)
-    extent = (bmax[:: max(1, len(tris) // 4096)] - bmin[:: max(1, len(tris) // 4096)]).max(axis=1)  # a sample: the cell sets the speed only
+    used = verts[np.unique(tris)] if len(verts) > 3 * len(tris) else verts  # (many unused vertices: not in the grid's box)
+    origin = used.min(axis=0)
+    span = np.maximum(used.max(axis=0) - origin, 1e-300)
+    sample = verts[tris[:: max(1, len(tris) // 4096)]]  # (m, 3, 3): the cell sets the speed only
+    extent = (sample.max(axis=1) - sample.min(axis=1)).max(axis=1)
     extent = extent[extent > 0]
     cell = _CELL_FACTOR * float(np.median(extent)) if extent.size else float(span.max())
     cell = max(cell, float(np.prod(span)) ** (1 / 3) / _MAX_CELLS ** (1 / 3), float(span.max()) / 2**20, np.finfo(float).tiny)
@@ -259,7 +254,7 @@ def point_mesh_distance(points: Any, vertices: Any, triangles: Any) -> np.ndarra
     while int(np.prod(dims)) > _MAX_CELLS:  # (flat meshes: the volume bound above does not hold the count)
         cell *= 1.25
         dims = np.maximum(np.ceil(span / cell).astype(np.int64), 1)
-    start, ids, big = _bin_triangles(bmin, bmax, origin, cell, dims, _MAX_COVERED)
+    start, ids, big = _bin_triangles(verts, tris, origin, cell, dims, _MAX_COVERED)
     out = np.empty(len(pts))
     settled = np.zeros(len(pts), dtype=np.bool_)
     _nearest(pts, verts, tris, origin, cell, dims, start, ids, big, SEARCH_SHELLS, out, settled)
@@ -270,7 +265,7 @@ def point_mesh_distance(points: Any, vertices: Any, triangles: Any) -> np.ndarra
         from o3drbf.mesh.arrays import raycasting_scene
         import open3d as o3d
 
-        centre = 0.5 * (bmin.min(axis=0) + bmax.max(axis=0))
+        centre = origin + 0.5 * span
         scene = raycasting_scene(verts - centre, tris)
         query = o3d.core.Tensor(np.ascontiguousarray(pts[far] - centre, dtype=np.float32))
         out[far] = scene.compute_distance(query).numpy().astype(float)

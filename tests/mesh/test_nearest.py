@@ -102,5 +102,7 @@ def test_bad_meshes_are_refused_with_the_fix():
         point_mesh_distance(np.zeros((2, 3)), np.zeros((3, 3)), np.zeros((0, 3), int))
     with pytest.raises(ValueError, match=r"indices must lie in \[0, 3\)"):
         point_mesh_distance(np.zeros((2, 3)), np.zeros((3, 3)), [[0, 1, 3]])
+    with pytest.raises(ValueError, match="NaN or infinite vertex"):
+        point_mesh_distance(np.zeros((2, 3)), [[0, 0, 0], [1, 0, 0], [0, np.nan, 0]], [[0, 1, 2]])
     assert point_mesh_distance(np.zeros((0, 3)), *_cube()).shape == (0,)
     assert SEARCH_SHELLS >= 1
