@@ -134,9 +134,10 @@ def restrict_near(matrix, points, radius: float, tab, dr: float) -> sp.csr_matri
     pts = np.ascontiguousarray(points, dtype=float)
     m = matrix.shape[0]
     counts = np.zeros(m, np.int64)
-    i32, f64 = np.zeros(1, np.int32), np.zeros(1)
+    # (the counting pass's unused outputs of the filling pass's types: one compiled variant for both)
+    unused_i, unused_d = np.zeros(1, matrix.indices.dtype), np.zeros(1, matrix.dtype)
     indptr = np.zeros(m + 1, np.int64)
-    _restrict_pass(False, matrix.indptr, matrix.indices, pts, float(radius), tab, float(dr), counts, indptr, i32, f64)
+    _restrict_pass(False, matrix.indptr, matrix.indices, pts, float(radius), tab, float(dr), counts, indptr, unused_i, unused_d)
     np.cumsum(counts, out=indptr[1:])
     indices = np.empty(indptr[-1], matrix.indices.dtype)
     data = np.empty(indptr[-1], matrix.dtype)
@@ -325,7 +326,8 @@ class CellList:
         m = len(targets)
         i64, f64 = np.zeros(1, np.int64), np.zeros(1)
         counts = np.zeros(m, np.int64)
-        self._pass(_COUNT, targets, (tab, tab, dr), f64, counts, (i64, np.zeros(1, np.int32), f64), (f64, np.zeros((1, 3))))
+        # (unused entries of the filling pass's type: the two passes share one compiled variant)
+        self._pass(_COUNT, targets, (tab, tab, dr), f64, counts, (i64, np.zeros(1, np.int32), np.zeros(1, dtype)), (f64, np.zeros((1, 3))))
         indptr = np.zeros(m + 1, np.int64)
         np.cumsum(counts, out=indptr[1:])
         del counts
