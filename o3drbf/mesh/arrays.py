@@ -153,18 +153,52 @@ def triangle_components(triangles: np.ndarray, side_edge: np.ndarray | None = No
     labels : (F,) int64 array
         The piece of each triangle, ``0 .. n - 1``.
     """
-    from scipy import sparse
-    from scipy.sparse.csgraph import connected_components
-
     if side_edge is None:
         side_edge = unique_edges(triangles)[1]
     nf = side_edge.shape[0]
     if nf == 0:
         return 0, np.zeros(0, np.int64)
-    ne = int(side_edge.max()) + 1
-    # Triangles and edges as the nodes of one bipartite graph.
-    rows = np.repeat(np.arange(nf), 3)
-    graph = sparse.coo_matrix((np.ones(3 * nf), (rows, nf + side_edge.ravel())), shape=(nf + ne, nf + ne))
-    _, labels = connected_components(graph, directed=False)
-    _, labels = np.unique(labels[:nf], return_inverse=True)
-    return int(labels.max()) + 1, labels.astype(np.int64)
+    labels = np.empty(nf, np.int64)
+    n = _edge_components(np.ascontiguousarray(side_edge, dtype=np.int64), int(side_edge.max()) + 1, labels)
+    return n, labels
+
+
+def _find(parent, i):
+    while parent[i] != i:
+        parent[i] = parent[parent[i]]  # (path halving)
+        i = parent[i]
+    return i
+
+
+def _edge_components_py(side_edge, n_edges, labels):
+    """Union-find of the triangles through their edges; ``labels`` numbered by first triangle; returns the count."""
+    nf = side_edge.shape[0]
+    parent = np.arange(nf)
+    first = np.full(n_edges, -1, np.int64)  # the first triangle seen on each edge
+    for t in range(nf):
+        for k in range(3):
+            e = side_edge[t, k]
+            if first[e] < 0:
+                first[e] = t
+            else:
+                a, b = _find(parent, t), _find(parent, first[e])
+                if a != b:
+                    parent[max(a, b)] = min(a, b)
+    number = np.full(nf, -1, np.int64)
+    n = 0
+    for t in range(nf):
+        r = _find(parent, t)
+        if number[r] < 0:
+            number[r] = n
+            n += 1
+        labels[t] = number[r]
+    return n
+
+
+try:  # compiled where numba is (a dependency); the same code in Python otherwise
+    from numba import njit
+
+    _find = njit(cache=True)(_find)
+    _edge_components = njit(cache=True)(_edge_components_py)
+except ImportError:  # pragma: no cover
+    _edge_components = _edge_components_py
