@@ -250,7 +250,7 @@ def have_ferreus() -> bool:
 # --------------------------------------------------------------------------------------
 #: Runs of each tool on the cases that take seconds (their single runs vary by a third on a shared machine):
 #: the tools take turns, run after run, and each row is the tool's median run.
-REPEATS = 3
+REPEATS = 5
 #: The cases run ``REPEATS`` times (the others once).
 REPEATED = ("start-up: 1,000 points", "torus 15k", "scan 27k", "noisy scan 27k")
 
