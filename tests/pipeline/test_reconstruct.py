@@ -286,8 +286,10 @@ def test_the_robust_refits_of_a_fast_evaluated_fit_are_loose_and_the_last_is_fin
     """Noisy points with 3 % strays, fast-solved and evaluated (made so from 1,000 centres): the robust
     refits solve to the loose tolerance of ``ROBUST_SHIFT`` (they only measure residuals), measure them on
     the meshing grid (no finer grid for gradients), and the last is solved on to the mesh's tolerance:
-    the final surface is the dense solve of the final constraints, to that tolerance."""
+    the final surface solves the final constraints' system to that tolerance (its residual by direct
+    sums), and so is the dense solve of them, to the accuracy that tolerance gives."""
     from o3drbf.pipeline import fitting
+    from o3drbf.rbf.sums import kernel_sum, polynomial_basis
     from o3drbf.solvers import Refitter, solve
     from o3drbf.solvers.fast import grid
     from o3drbf.surface import ImplicitSurface
@@ -316,10 +318,14 @@ def test_the_robust_refits_of_a_fast_evaluated_fit_are_loose_and_the_last_is_fin
     assert r.report.residual <= full
     c = r.constraints  # the final fit's, data coordinates
     box = r.surface.normalization.forward(c.points)
-    ref = solve(r.surface.kernel, box, c.values, c.smoothing, method="dense")
-    dense = ImplicitSurface(r.surface.kernel, box, ref.weights, ref.poly, r.surface.normalization)
-    # 2e-5 here; 2e-4 when the last refit is left at the loose tolerance
-    assert np.abs(r.surface.evaluate_box(box) - dense.evaluate_box(box)).max() < 1e-4
+    s = r.surface
+    q = polynomial_basis(box, s.kernel.polynomial_degree)
+    top = kernel_sum(s.kernel, box, s.weights, box) + c.smoothing * s.weights + q @ s.poly - c.values
+    residual = np.sqrt(np.sum(top**2) + np.sum((q.T @ s.weights) ** 2)) / np.linalg.norm(c.values)
+    assert residual < 1.5 * full < loose, (residual, full, loose)  # (the fast products' own error on top of the solve's)
+    ref = solve(s.kernel, box, c.values, c.smoothing, method="dense")
+    dense = ImplicitSurface(s.kernel, box, ref.weights, ref.poly, s.normalization)
+    assert np.abs(s.evaluate_box(box) - dense.evaluate_box(box)).max() < 1e-3
 
 
 def test_the_robust_refits_below_fast_evaluation_share_the_first_fits_meshing_grid(monkeypatch):
