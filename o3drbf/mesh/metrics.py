@@ -15,7 +15,8 @@ The fitness error and :func:`point_distances` are exact, in double precision
 (:mod:`o3drbf.mesh.nearest`).  The comparisons' point-to-mesh distances use
 Open3D's ``RaycastingScene``, which works in float32; coordinates are shifted
 to the mesh's bounding-box centre first so that the absolute error stays near
-``1e-7`` times the mesh size, wherever the mesh sits.  Mesh sampling is done here, in NumPy, so that a ``seed`` fixes it.
+``1e-7`` times the mesh size, wherever the mesh sits.  Mesh sampling is done
+here, in NumPy, so that a ``seed`` fixes it.
 """
 
 from __future__ import annotations
