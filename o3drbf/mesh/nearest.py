@@ -47,36 +47,27 @@ def _dist2_triangle(px, py, pz, verts, t0, t1, t2):
         e2 = _dist2_segment(apx, apy, apz, acx, acy, acz)
         e3 = _dist2_segment(apx - abx, apy - aby, apz - abz, acx - abx, acy - aby, acz - abz)
         return min(e1, min(e2, e3))
-    d1 = abx * apx + aby * apy + abz * apz
+    ab_ac = abx * acx + aby * acy + abz * acz
+    d1 = abx * apx + aby * apy + abz * apz  # ab.ap, ac.ap; then the same of bp = ap - ab and cp = ap - ac
     d2 = acx * apx + acy * apy + acz * apz
+    d3, d4 = d1 - (abx * abx + aby * aby + abz * abz), d2 - ab_ac
+    d5, d6 = d1 - ab_ac, d2 - (acx * acx + acy * acy + acz * acz)
     if d1 <= 0.0 and d2 <= 0.0:  # vertex a
         return apx * apx + apy * apy + apz * apz
-    bpx, bpy, bpz = apx - abx, apy - aby, apz - abz
-    d3 = abx * bpx + aby * bpy + abz * bpz
-    d4 = acx * bpx + acy * bpy + acz * bpz
     if d3 >= 0.0 and d4 <= d3:  # vertex b
-        return bpx * bpx + bpy * bpy + bpz * bpz
+        return (apx - abx) ** 2 + (apy - aby) ** 2 + (apz - abz) ** 2
+    if d6 >= 0.0 and d5 <= d6:  # vertex c
+        return (apx - acx) ** 2 + (apy - acy) ** 2 + (apz - acz) ** 2
     vc = d1 * d4 - d3 * d2
     if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:  # edge ab
-        v = d1 / (d1 - d3)
-        qx, qy, qz = apx - v * abx, apy - v * aby, apz - v * abz
-        return qx * qx + qy * qy + qz * qz
-    cpx, cpy, cpz = apx - acx, apy - acy, apz - acz
-    d5 = abx * cpx + aby * cpy + abz * cpz
-    d6 = acx * cpx + acy * cpy + acz * cpz
-    if d6 >= 0.0 and d5 <= d6:  # vertex c
-        return cpx * cpx + cpy * cpy + cpz * cpz
+        return _dist2_segment(apx, apy, apz, abx, aby, abz)
     vb = d5 * d2 - d1 * d6
     if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:  # edge ac
-        w = d2 / (d2 - d6)
-        qx, qy, qz = apx - w * acx, apy - w * acy, apz - w * acz
-        return qx * qx + qy * qy + qz * qz
+        return _dist2_segment(apx, apy, apz, acx, acy, acz)
     va = d3 * d6 - d5 * d4
     if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:  # edge bc
-        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        qx, qy, qz = bpx - w * (acx - abx), bpy - w * (acy - aby), bpz - w * (acz - abz)
-        return qx * qx + qy * qy + qz * qz
-    denom = va + vb + vc  # |ab x ac|^2 > 0 (and each side's length above, |ab|^2 = d1 - d3, ... > 0)
+        return _dist2_segment(apx - abx, apy - aby, apz - abz, acx - abx, acy - aby, acz - abz)
+    denom = va + vb + vc  # |ab x ac|^2 > 0
     v = vb / denom
     w = vc / denom
     qx, qy, qz = apx - v * abx - w * acx, apy - v * aby - w * acy, apz - v * abz - w * acz
