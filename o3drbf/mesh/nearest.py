@@ -19,6 +19,8 @@ from typing import Any
 import numpy as np
 from numba import njit, prange
 
+from o3drbf.mesh.arrays import raycasting_scene
+
 __all__ = ["point_mesh_distance", "SEARCH_SHELLS"]
 
 #: Shells of cells a point searches around its own before Open3D answers it instead.
@@ -240,9 +242,9 @@ def point_mesh_distance(points: Any, vertices: Any, triangles: Any) -> np.ndarra
     extent = (sample.max(axis=1) - sample.min(axis=1)).max(axis=1)
     extent = extent[extent > 0]
     cell = _CELL_FACTOR * float(np.median(extent)) if extent.size else float(span.max())
-    cell = max(cell, float(np.prod(span)) ** (1 / 3) / _MAX_CELLS ** (1 / 3), float(span.max()) / 2**20, np.finfo(float).tiny)
+    cell = max(cell, (float(np.prod(span)) / _MAX_CELLS) ** (1 / 3))
     dims = np.maximum(np.ceil(span / cell).astype(np.int64), 1)
-    while int(np.prod(dims)) > _MAX_CELLS:  # (flat meshes: the volume bound above does not hold the count)
+    while int(np.prod(dims)) > _MAX_CELLS:  # (flat meshes: the volume's bound above does not hold the count)
         cell *= 1.25
         dims = np.maximum(np.ceil(span / cell).astype(np.int64), 1)
     start, ids, big = _bin_triangles(verts, tris, origin, cell, dims, _MAX_COVERED)
@@ -253,7 +255,6 @@ def point_mesh_distance(points: Any, vertices: Any, triangles: Any) -> np.ndarra
     if len(far) and len(far) * len(tris) <= _BRUTE_PAIRS:
         _every_triangle(pts, far, verts, tris, out)
     elif len(far):
-        from o3drbf.mesh.arrays import raycasting_scene
         import open3d as o3d
 
         centre = origin + 0.5 * span
