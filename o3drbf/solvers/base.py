@@ -12,7 +12,7 @@ import numpy as np
 
 
 __all__ = ["Solution", "ConvergenceWarning", "MemoryRefusal", "available_memory", "memory_limit_or_default", "dense_memory",
-           "relative_residual", "RESIDUAL_ROWS", "gigabytes", "busy_machine", "dense_blas_threads"]
+           "relative_residual", "RESIDUAL_ROWS", "gigabytes", "busy_machine", "dense_blas_threads", "DENSE_THREADS_MIN"]
 
 
 class ConvergenceWarning(UserWarning):
@@ -228,14 +228,22 @@ def busy_machine(load: float | None = None, cores: int | None = None) -> bool:
     return cores > 1 and load > cores + 0.5
 
 
-@contextlib.contextmanager
-def dense_blas_threads():
-    """One BLAS thread for a dense factorization on a busy machine (:func:`busy_machine`), else as configured.
+#: Dense systems with fewer unknowns than this are factored and solved on one BLAS thread: below it a
+#: second thread saves little, and on a busy machine threaded LAPACK spin-waits (docs/data/design-measurements.md,
+#: "Dense BLAS threads").
+DENSE_THREADS_MIN = 2_000
 
-    Multi-threaded LAPACK factorizations spin-wait on each other's threads:
-    with the cores already taken they run many times slower than one thread.
+
+@contextlib.contextmanager
+def dense_blas_threads(n: int):
+    """BLAS threads for factoring or solving a dense system of ``n`` unknowns: one below
+    :data:`DENSE_THREADS_MIN`, else as configured.
+
+    The count depends on ``n`` only, never on the machine's load at the time: LAPACK's threaded
+    factorizations round differently from its one-thread ones, and the same input must give the same
+    surface, bit for bit.
     """
-    if not busy_machine():
+    if n >= DENSE_THREADS_MIN:
         yield
         return
     try:

@@ -98,7 +98,7 @@ class DenseFactor:
             a = kernel_matrix(kernel, centres, lower=True)  # the factorization reads the lower triangle only
             a[np.diag_indices(n)] += lam
         if self.precision == "mixed":
-            with dense_blas_threads():
+            with dense_blas_threads(n):
                 if single is None:
                     single, self.norm = lower_single(a)
                 single, info = sla.lapack.spotrf(single, lower=1, overwrite_a=1, clean=0)
@@ -107,7 +107,7 @@ class DenseFactor:
             else:  # not positive definite in single precision: factor in double
                 self.precision = "double"
         if self.precision == "double":
-            with dense_blas_threads():
+            with dense_blas_threads(n):
                 self.factor = sla.cho_factor(a, lower=True, overwrite_a=True, check_finite=False)
         self.lam0 = np.array(lam, dtype=float)
         self.q = q
@@ -186,11 +186,12 @@ class DenseFactor:
         """
         b = np.asarray(b, dtype=float)
         if self.single is None:
-            return sla.cho_solve(self.factor, b, check_finite=False)
+            with dense_blas_threads(len(b)):
+                return sla.cho_solve(self.factor, b, check_finite=False)
         flat = b.ndim == 1
         b2 = b.reshape(len(b), -1)
         bnorm = np.linalg.norm(b2, axis=0)
-        with dense_blas_threads():
+        with dense_blas_threads(len(b2)):
             x = sla.lapack.spotrs(self.single, b2.astype(np.float32), lower=1)[0].astype(float)
             previous = np.inf
             for _ in range(REFINE_STEPS + 1):
@@ -212,7 +213,7 @@ class DenseFactor:
             return
         a, self.matrix, self.single = self.matrix, None, None
         self.precision = "double"
-        with dense_blas_threads():
+        with dense_blas_threads(len(a)):
             self.factor = sla.cho_factor(a, lower=True, overwrite_a=True, check_finite=False)
 
     def residual(self, y, lam, w, p) -> float:
@@ -271,7 +272,7 @@ def solve_dense(kernel, centres, y, lam, q):
     big[:n, n:] = q
     big[n:, :n] = q.T
     rhs = np.concatenate([y, np.zeros(m)])
-    with dense_blas_threads():
+    with dense_blas_threads(len(big)):
         sol = sla.solve(big, rhs, assume_a="sym", overwrite_a=True, overwrite_b=True, check_finite=False)
     return sol[:n], sol[n:], {"factorization": "symmetric-indefinite"}
 
