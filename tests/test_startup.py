@@ -177,9 +177,10 @@ def test_log_lines_go_above_the_bars_without_tqdms_notebook_parts(tmp_path):
     assert any(x.startswith("[tqdm] o3drbf: ") and "no normals" in x for x in proc.stderr.splitlines()), proc.stderr[-2000:]
 
 
-def test_the_process_command_line_freezes_the_collector_at_the_end_an_in_process_call_does_not(tmp_path):
-    # argv=None (the console script, python -m o3drbf): gc.freeze() once the command is done, and the
-    # outputs are whole; an in-process call with argv leaves the collector as it was.
+def test_the_process_command_line_collects_less_and_freezes_the_collector_at_the_end_an_in_process_call_does_not(tmp_path):
+    # argv=None (the console script, python -m o3drbf): the collector's thresholds raised for the command,
+    # gc.freeze() once it is done, and the outputs are whole; an in-process call with argv leaves the
+    # collector as it was.
     p, n = Sphere(1.0).sample(300, seed=3)
     write_points(tmp_path / "sphere.ply", p, n)
     args = ["reconstruct", str(tmp_path / "sphere.ply"), "-o", str(tmp_path / "m.ply"), "--resolution", "16", "-q"]
@@ -187,12 +188,13 @@ def test_the_process_command_line_freezes_the_collector_at_the_end_an_in_process
     out = _python(
         "import gc, sys\n"
         "from o3drbf.cli.commands import main\n"
-        f"print(main({args!r}), gc.get_freeze_count())\n"
+        f"print(main({args!r}), gc.get_freeze_count(), gc.get_threshold() == (700, 10, 10))\n"
         f"sys.argv = {args2!r}\n"
         "code = main()\n"
-        "print(code, gc.get_freeze_count() > 0)\n"
+        "from o3drbf.cli.commands import COLLECTOR_THRESHOLDS\n"
+        "print(code, gc.get_freeze_count() > 0, gc.get_threshold() == COLLECTOR_THRESHOLDS != (700, 10, 10))\n"
     )
-    assert out.split() == ["0", "0", "0", "True"], out
+    assert out.split() == ["0", "0", "True", "0", "True", "True"], out
     import open3d as o3d
 
     for name in ("m.ply", "m2.ply"):

@@ -132,6 +132,8 @@ def main(argv: list[str] | None = None) -> int:
     """
     from o3drbf.io.files import signal_cleanup
 
+    if argv is None:
+        _collect_less()
     try:
         with signal_cleanup():
             return _main(argv)
@@ -167,6 +169,24 @@ def run() -> NoReturn:
         except (OSError, ValueError):  # a closed pipe (``| head``): nothing more can be written there
             pass
     os._exit(code)
+
+
+#: The garbage collector's thresholds in the process of the command line (:func:`gc.set_threshold`;
+#: Python's are 700, 10, 10).
+COLLECTOR_THRESHOLDS = (20_000, 10, 10)
+
+
+def _collect_less() -> None:
+    """Called when ``main`` runs the process's own command line: the garbage collector's youngest
+    generation is collected after :data:`COLLECTOR_THRESHOLDS` new objects instead of 700.
+
+    A command builds few objects that refer to each other but imports many modules (SciPy, Numba,
+    Open3D) whose objects each collection walks again; the arrays that hold the data are freed when
+    their last reference goes, whatever the collector does.  An in-process caller passes ``argv`` and
+    keeps its own thresholds."""
+    import gc
+
+    gc.set_threshold(*COLLECTOR_THRESHOLDS)
 
 
 def _leave_for_exit() -> None:
