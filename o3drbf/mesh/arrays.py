@@ -123,14 +123,65 @@ def unique_edges(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndar
     counts : (E,) int64 array
         How many triangle sides use each edge (2 everywhere on a closed manifold).
     """
-    tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    tris = np.ascontiguousarray(np.asarray(triangles, dtype=np.int64).reshape(-1, 3))
     if not len(tris):
         return np.zeros((0, 2), np.int64), np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
-    nv = np.int64(tris.max()) + 1
-    i, j = np.roll(tris, -1, axis=1), np.roll(tris, -2, axis=1)
-    keys = (np.minimum(i, j) * nv + np.maximum(i, j)).ravel()  # integer keys: a 1-D sort, not a row sort
-    keys, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
-    return np.stack([keys // nv, keys % nv], axis=1), inverse.reshape(-1, 3), counts
+    edges, side_edge, counts, n = _edge_table(tris, int(tris.max()) + 1)
+    return edges[:n], side_edge.reshape(-1, 3), counts[:n]
+
+
+def _sort_bucket(order, hi, begin, end):
+    """Sort ``order[begin:end]`` by ``hi`` of its entries, keeping the order of equal ones."""
+    if end - begin > 32:
+        part = order[begin:end].copy()
+        order[begin:end] = part[np.argsort(hi[part], kind="mergesort")]
+        return
+    for p in range(begin + 1, end):  # insertion sort: a vertex has a handful of edges
+        s = order[p]
+        key = hi[s]
+        q = p - 1
+        while q >= begin and hi[order[q]] > key:
+            order[q + 1] = order[q]
+            q -= 1
+        order[q + 1] = s
+
+
+def _edge_table_py(tris, nv):
+    """:func:`unique_edges` in linear time: the sides bucketed by their lower vertex (a counting sort),
+    each bucket sorted by the higher one.  Returns (edges, side_edge, counts) with room for every side,
+    and the number of edges."""
+    ns = 3 * tris.shape[0]
+    lo = np.empty(ns, np.int64)
+    hi = np.empty(ns, np.int64)
+    start = np.zeros(nv + 1, np.int64)
+    for f in range(tris.shape[0]):
+        for k in range(3):
+            i, j = tris[f, (k + 1) % 3], tris[f, (k + 2) % 3]
+            s = 3 * f + k
+            lo[s], hi[s] = min(i, j), max(i, j)
+            start[lo[s] + 1] += 1
+    for v in range(nv):
+        start[v + 1] += start[v]
+    fill = start[:-1].copy()
+    order = np.empty(ns, np.int64)
+    for s in range(ns):
+        order[fill[lo[s]]] = s
+        fill[lo[s]] += 1
+    for v in range(nv):
+        if start[v + 1] - start[v] > 1:
+            _sort_bucket(order, hi, start[v], start[v + 1])
+    edges = np.empty((ns, 2), np.int64)
+    side_edge = np.empty(ns, np.int64)
+    counts = np.zeros(ns, np.int64)
+    n = 0
+    for p in range(ns):
+        s = order[p]
+        if n == 0 or lo[s] != edges[n - 1, 0] or hi[s] != edges[n - 1, 1]:
+            edges[n, 0], edges[n, 1] = lo[s], hi[s]
+            n += 1
+        side_edge[s] = n - 1
+        counts[n - 1] += 1
+    return edges, side_edge, counts, n
 
 
 def triangle_components(triangles: np.ndarray, side_edge: np.ndarray | None = None) -> tuple[int, np.ndarray]:
@@ -200,5 +251,8 @@ try:  # compiled where numba is (a dependency); the same code in Python otherwis
 
     _find = njit(cache=True)(_find)
     _edge_components = njit(cache=True)(_edge_components_py)
+    _sort_bucket = njit(cache=True)(_sort_bucket)
+    _edge_table = njit(cache=True)(_edge_table_py)
 except ImportError:  # pragma: no cover
     _edge_components = _edge_components_py
+    _edge_table = _edge_table_py

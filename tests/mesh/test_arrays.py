@@ -94,6 +94,22 @@ def test_edges_of_a_tetrahedron_and_a_box():
     assert len(open_edges) == 18 and (open_counts == 1).sum() == 3
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_edges_of_triangle_soups_are_a_sort_of_the_sides(seed):
+    """unique_edges against a plain sort of the sides' (lower, higher) vertex pairs, on soups with fans of
+    hundreds of triangles at one vertex (sorted by merging) and triangles that repeat a vertex."""
+    rng = np.random.default_rng(seed)
+    tris = rng.integers(0, 40, (300, 3))
+    fan = np.c_[np.full(200, 7), rng.integers(0, 300, (200, 2))]  # vertex 7: over 400 sides
+    tris = np.vstack([tris, fan, [[5, 5, 5], [3, 9, 3]]])
+    edges, side, counts = unique_edges(tris)
+    a, b = np.roll(tris, -1, axis=1).ravel(), np.roll(tris, -2, axis=1).ravel()
+    pairs = np.c_[np.minimum(a, b), np.maximum(a, b)]
+    expected, inverse, expected_counts = np.unique(pairs, axis=0, return_inverse=True, return_counts=True)
+    assert np.array_equal(edges, expected) and np.array_equal(counts, expected_counts)
+    assert np.array_equal(side.ravel(), inverse.ravel())
+
+
 def test_triangle_components_are_open3ds_clusters():
     """Pieces joined through shared edges, numbered as Open3D's cluster_connected_triangles numbers them."""
     pieces = [o3d.geometry.TriangleMesh.create_torus().translate((3.0 * i, 0, 0)) for i in range(3)]
