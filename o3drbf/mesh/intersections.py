@@ -35,6 +35,7 @@ IsSelfIntersecting()``.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -49,6 +50,8 @@ _EPSILON = 1e-6
 _MAX_CELLS = 64
 # Grid cells per axis are capped so that the linear cell key fits in int64.
 _MAX_DIM = 1 << 20
+# The entries are sorted by cell with a counting sort where the grid has at most this many cells an entry.
+_COUNTING_SORT_CELLS = 16
 
 
 # --------------------------------------------------------------------------
@@ -300,6 +303,71 @@ def _test_pair(verts, tris, bmin, bmax, i, j, work):
 
 
 @njit(cache=True)
+def _triangle_boxes(verts, tris):
+    """Each triangle's bounding box ``(F, 3)`` twice, its longest side ``(F,)``, and the lowest and the
+    highest corner of all the boxes ``(3,)``."""
+    nf = tris.shape[0]
+    bmin = np.empty((nf, 3))
+    bmax = np.empty((nf, 3))
+    extent = np.empty(nf)
+    origin = np.full(3, np.inf)
+    top = np.full(3, -np.inf)
+    for f in range(nf):
+        e = 0.0
+        for ax in range(3):
+            a, b, c = verts[tris[f, 0], ax], verts[tris[f, 1], ax], verts[tris[f, 2], ax]
+            low, high = min(min(a, b), c), max(max(a, b), c)
+            bmin[f, ax] = low
+            bmax[f, ax] = high
+            e = max(e, high - low)
+            origin[ax] = min(origin[ax], low)
+            top[ax] = max(top[ax], high)
+        extent[f] = e
+    return bmin, bmax, extent, origin, top
+
+
+@njit(cache=True)
+def _box_cells(bmin, bmax, origin, cell, max_dim, max_cells):
+    """The grid cells of each box's lower and upper corner ``(F, 3)`` (within ``max_dim`` an axis), whether
+    it covers at most ``max_cells`` cells, and the grid's cells an axis ``(3,)``."""
+    nf = bmin.shape[0]
+    lo = np.empty((nf, 3), np.int64)
+    hi = np.empty((nf, 3), np.int64)
+    small = np.empty(nf, np.bool_)
+    dims = np.ones(3, np.int64)
+    for f in range(nf):
+        covered = 1
+        for ax in range(3):
+            a = min(max(np.int64(math.floor((bmin[f, ax] - origin[ax]) / cell)), 0), max_dim - 1)
+            b = min(max(np.int64(math.floor((bmax[f, ax] - origin[ax]) / cell)), a), max_dim - 1)
+            lo[f, ax] = a
+            hi[f, ax] = b
+            dims[ax] = max(dims[ax], b + 1)
+            covered *= b - a + 1
+        small[f] = covered <= max_cells
+    return lo, hi, small, dims
+
+
+@njit(cache=True)
+def _by_cell(keys, ids, n_cells):
+    """``keys`` and ``ids`` in increasing order of key, entries of one key in their order (a counting sort
+    over the ``n_cells`` keys)."""
+    start = np.zeros(n_cells + 1, np.int64)
+    for k in keys:
+        start[k + 1] += 1
+    for c in range(n_cells):
+        start[c + 1] += start[c]
+    out_keys = np.empty_like(keys)
+    out_ids = np.empty_like(ids)
+    for e in range(keys.shape[0]):
+        p = start[keys[e]]
+        out_keys[p] = keys[e]
+        out_ids[p] = ids[e]
+        start[keys[e]] = p + 1
+    return out_keys, out_ids
+
+
+@njit(cache=True)
 def _grid_entries(lo, hi, small, dims):
     """Cell keys and triangle ids ``(E,)`` of every (small triangle, cell) it covers."""
     n = 0
@@ -444,25 +512,18 @@ def self_intersecting_pairs(vertices: Any, triangles: Any) -> np.ndarray:
     verts, tris = _check_arrays(vertices, triangles)
     if tris.shape[0] < 2:
         return np.empty((0, 2), dtype=np.int64)
-    c0, c1, c2 = verts[tris[:, 0]], verts[tris[:, 1]], verts[tris[:, 2]]  # (three reductions of a small axis are slow)
-    bmin = np.minimum(np.minimum(c0, c1), c2)
-    bmax = np.maximum(np.maximum(c0, c1), c2)
-    origin = bmin.min(axis=0)
-    span = float((bmax.max(axis=0) - origin).max())
-    extent = (bmax - bmin).max(axis=1)
+    bmin, bmax, extent, origin, top = _triangle_boxes(verts, tris)
+    span = float((top - origin).max())
     extent = extent[extent > 0]  # triangles collapsed to a point say nothing of the size
     cell = 1.5 * float(np.median(extent)) if extent.size else span
     cell = max(cell, span / (_MAX_DIM - 2), np.finfo(float).tiny)
-    lo = np.floor((bmin - origin) / cell).astype(np.int64)
-    hi = np.floor((bmax - origin) / cell).astype(np.int64)
-    np.clip(lo, 0, _MAX_DIM - 1, out=lo)
-    np.clip(hi, lo, _MAX_DIM - 1, out=hi)
-    dims = hi.max(axis=0) + 1
-    covered = np.prod(hi - lo + 1, axis=1)
-    small = covered <= _MAX_CELLS
+    lo, hi, small, dims = _box_cells(bmin, bmax, origin, cell, _MAX_DIM, _MAX_CELLS)
     keys, ids = _grid_entries(lo, hi, small, dims)
-    order = np.argsort(keys, kind="stable")
-    keys, ids = keys[order], ids[order]
+    if int(dims[0]) * int(dims[1]) * int(dims[2]) <= _COUNTING_SORT_CELLS * max(len(keys), 1024):
+        keys, ids = _by_cell(keys, ids, int(dims[0] * dims[1] * dims[2]))
+    else:  # a grid much larger than its entries: a comparison sort
+        order = np.argsort(keys, kind="stable")
+        keys, ids = keys[order], ids[order]
     big_ids = np.flatnonzero(~small).astype(np.int64)
     # Chunks of whole cells (each starts where a cell's entries start), tested in parallel.
     total = len(keys)
@@ -537,6 +598,17 @@ def _nonmanifold(tris, start, incident, width, out):
             out[v] = pieces > 1
 
 
+@njit(cache=True)
+def _incident_triangles(flat, start):
+    """The triangle of each corner, grouped by vertex (vertex ``v``'s from ``start[v]``), in triangle order."""
+    fill = start[:-1].copy()
+    out = np.empty(flat.shape[0], np.int64)
+    for c in range(flat.shape[0]):
+        out[fill[flat[c]]] = c // 3
+        fill[flat[c]] += 1
+    return out
+
+
 def nonmanifold_vertices(triangles, n_vertices: int) -> np.ndarray:
     """Indices of the vertices around which the triangles do not form one fan, as Open3D's
     ``TriangleMesh.get_non_manifold_vertices()`` (so ``is_vertex_manifold()`` is this being empty).
@@ -568,9 +640,9 @@ def nonmanifold_vertices(triangles, n_vertices: int) -> np.ndarray:
     if len(tris) and (tris.min() < 0 or tris.max() >= n):
         raise ValueError(f"triangle indices must lie in [0, {n}), got [{tris.min()}, {tris.max()}]")
     flat = tris.ravel()
-    incident = np.argsort(flat, kind="stable") // 3  # each vertex's triangles, in triangle order
     start = np.zeros(n + 1, np.int64)
     np.cumsum(np.bincount(flat, minlength=n), out=start[1:])
+    incident = _incident_triangles(flat, start)  # each vertex's triangles, in triangle order
     out = np.zeros(n, np.bool_)
     if n:
         _nonmanifold(tris, start, incident, max(int(np.diff(start).max()), 1), out)

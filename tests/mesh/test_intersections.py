@@ -328,6 +328,24 @@ def test_many_cells_tested_in_parallel_chunks_find_every_pair():
     assert check_same(mesh) > 500
 
 
+@pytest.mark.parametrize("sort", ["counting", "comparison"])
+def test_cells_sorted_either_way_give_open3ds_pairs(monkeypatch, sort):
+    """The grid's entries sorted by cell by counting (a grid of few cells an entry) or by comparison (two
+    clusters far apart: a grid of many empty cells) give Open3D's pairs."""
+    from o3drbf.mesh import intersections
+
+    calls = []
+    by_cell = intersections._by_cell
+    monkeypatch.setattr(intersections, "_by_cell", lambda *a: calls.append(1) or by_cell(*a))
+    a = o3d.geometry.TriangleMesh.create_torus(0.6, 0.25, 40, 20)
+    b = o3d.geometry.TriangleMesh.create_torus(0.6, 0.25, 40, 20).translate((0.3, 0.0, 0.05))
+    mesh = a + b
+    if sort == "comparison":
+        mesh = mesh + o3d.geometry.TriangleMesh.create_sphere(0.3, 10).translate((400.0, 300.0, 200.0))
+    assert check_same(mesh) > 100
+    assert bool(calls) == (sort == "counting")
+
+
 def _vertex_soup(seed, n_vertices, n_triangles):
     """Triangles of three distinct vertices drawn from a few: fans, pinches, non-manifold edges, repeats."""
     rng = np.random.default_rng(seed)
