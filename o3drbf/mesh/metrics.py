@@ -53,13 +53,6 @@ _DEGENERATE = 1e-12
 # input checks and shared helpers
 
 
-def _sorted_unique(values: np.ndarray) -> np.ndarray:
-    """Distinct values of a 1-D integer array, by sorting (faster here than
-    ``np.unique``'s hash path in NumPy 2)."""
-    s = np.sort(values)
-    return s[np.concatenate([[True], s[1:] != s[:-1]])] if s.size else s
-
-
 def _is_mesh(obj: Any) -> bool:
     return hasattr(obj, "triangles") and hasattr(obj, "vertices") and not isinstance(obj, np.ndarray)
 
@@ -540,16 +533,22 @@ def mesh_report(mesh: Any, self_intersections: bool = True) -> dict[str, Any]:
 
     n_comp, tri_comp = triangle_components(tris, tri_edges)
 
-    # Consistent orientation: on a closed edge-manifold mesh, each directed
-    # edge appears once.
+    # Consistent orientation: on a closed edge-manifold mesh, each directed edge appears once, i.e. on
+    # each edge at most one side runs from its lower vertex up and at most one the other way (side k of
+    # a triangle runs from its corner k + 1 to its corner k + 2, as unique_edges numbers them).
     oriented = False
     if closed:
-        directed = (tris * np.int64(verts.shape[0]) + np.roll(tris, -1, axis=1)).ravel()
-        oriented = bool(_sorted_unique(directed).size == directed.size)
+        up = (np.roll(tris, -1, axis=1) <= np.roll(tris, -2, axis=1)).ravel()
+        sides = tri_edges.ravel()
+        oriented = bool(np.bincount(sides[up], minlength=ne).max(initial=0) <= 1
+                        and np.bincount(sides[~up], minlength=ne).max(initial=0) <= 1)
 
     genus = None
     if watertight and (oriented or mesh.is_orientable()):
-        comp_v = np.bincount(_sorted_unique((tri_comp[:, None] * verts.shape[0] + tris).ravel()) // verts.shape[0], minlength=n_comp)
+        # every vertex in one piece (the mesh is vertex-manifold): each piece's vertices counted once
+        vertex_comp = np.full(verts.shape[0], -1, dtype=np.int64)
+        vertex_comp[tris] = tri_comp[:, None]
+        comp_v = np.bincount(vertex_comp[vertex_comp >= 0], minlength=n_comp)
         edge_comp = np.empty(ne, dtype=np.int64)
         edge_comp[tri_edges.ravel()] = np.repeat(tri_comp, 3)
         comp_e = np.bincount(edge_comp, minlength=n_comp)

@@ -332,6 +332,19 @@ def test_report_of_a_torus():
     assert rep["volume"] == pytest.approx(2 * math.pi**2 * 1.0 * 0.4**2, rel=2e-2)
 
 
+def test_report_of_a_mesh_with_one_triangle_turned():
+    """A closed mesh whose triangles are not all turned alike has no volume (it is not consistently
+    oriented) but still a genus (Open3D finds it orientable); every triangle turned, it has both."""
+    mesh = sphere(1.0)
+    tris = np.asarray(mesh.triangles).copy()
+    tris[5] = tris[5][::-1]
+    turned = o3d.geometry.TriangleMesh(mesh.vertices, o3d.utility.Vector3iVector(tris))
+    rep = mesh_report(turned)
+    assert rep["watertight"] and rep["volume"] is None and rep["genus"] == 0 and turned.is_orientable()
+    rep = mesh_report(flipped(mesh))
+    assert rep["volume"] == pytest.approx(mesh_report(mesh)["volume"], rel=1e-12) and rep["genus"] == 0
+
+
 def test_report_sums_genus_over_components():
     torus = o3d.geometry.TriangleMesh.create_torus(1.0, 0.3, 30, 20)
     two_tori_and_a_sphere = torus + sphere(0.3, 10).translate((4, 0, 0)) + torus.translate((0, 4, 0))
