@@ -287,3 +287,34 @@ def test_potential_by_scipy_fft_public_functions_is_the_same(monkeypatch):
     public = mesh.potential(pts, w)
     assert np.abs(public - fast_path).max() < 1e-12 * np.abs(fast_path).max()
     assert np.abs(public - potential_reference(mesh, pts, w, ktable)).max() < 1e-12 * np.abs(fast_path).max()
+
+
+@pytest.mark.parametrize("kernel", [MultiOrder(8, 0.006), MultiOrder(3.456, 0.025)], ids=repr)
+def test_long_part_of_real_rates_is_the_gaussian_smoothed_kernel(monkeypatch, kernel):
+    """The grid's long part of a kernel whose decay rates are real, summed in real arithmetic: each
+    component e^{-kappa r} / (4 pi r) convolved with the Gaussian of width sigma (a radial quadrature),
+    times e^{-kappa^2 (sigma^2 + extra^2) / 2}, within 1e-10 of the largest value."""
+    import math
+
+    from scipy.integrate import quad
+
+    from o3drbf.solvers.fast import grid
+
+    def smoothed(r, kappa, sigma):
+        def f(rho):
+            return math.exp(-kappa * rho) / (4 * math.pi) * (math.exp(-(r - rho) ** 2 / (2 * sigma**2))
+                                                              - math.exp(-(r + rho) ** 2 / (2 * sigma**2)))
+        return quad(f, 0.0, r + 12 * sigma, points=[r], limit=200, epsabs=0.0, epsrel=1e-13)[0] / (r * math.sqrt(2 * math.pi) * sigma)
+
+    kinds = []
+    psi = grid._psi_long
+    monkeypatch.setattr(grid, "_psi_long", lambda r, kappa, sigma: kinds.append(type(kappa)) or psi(r, kappa, sigma))
+    sigma, extra = 0.068, 0.03
+    r = np.array([0.005, 0.02, 0.07, 0.2, 0.45])
+    got = grid.long_part(kernel, r, sigma, extra=extra)
+    assert kinds and all(k is float for k in kinds)
+    want = np.zeros(len(r))
+    for kappa, coef in grid._components(kernel):
+        kappa, coef = complex(kappa).real, complex(coef).real
+        want += coef * math.exp(-kappa**2 * (sigma**2 + extra**2) / 2) * np.array([smoothed(x, kappa, sigma) for x in r])
+    assert np.abs(got - want).max() <= 1e-10 * np.abs(want).max()

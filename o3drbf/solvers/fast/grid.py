@@ -50,11 +50,20 @@ def _psi_long(r, kappa, sigma):
 
 
 def long_part(kernel, r, sigma, extra=0.0):
-    """sum_c coef_c e^{-kappa_c^2 extra^2 / 2} psi_long(r; kappa_c, sigma)."""
+    """sum_c coef_c e^{-kappa_c^2 extra^2 / 2} psi_long(r; kappa_c, sigma).
+
+    Real decay rates and coefficients (most kernels) are summed in real arithmetic, where SciPy's
+    ``erfc`` and ``erfcx`` are several times faster than on complex arguments, to the same accuracy."""
+    parts = [(complex(kappa), complex(coef)) for kappa, coef in _components(kernel)]
+    if all(kappa.imag == 0 and coef.imag == 0 for kappa, coef in parts):
+        out = np.zeros(np.shape(r))
+        for kappa, coef in parts:
+            out += coef.real * math.exp(-(kappa.real * extra) ** 2 / 2) * _psi_long(r, kappa.real, sigma)
+        return out
     out = np.zeros(np.shape(r), dtype=complex)
-    for kappa, coef in _components(kernel):
+    for kappa, coef in parts:
         damp = np.exp(-(kappa * extra) ** 2 / 2)
-        out += coef * damp * _psi_long(r, kappa + 0j, sigma)
+        out += coef * damp * _psi_long(r, kappa, sigma)
     return out.real
 
 
