@@ -171,24 +171,27 @@ def test_companions_take_their_near_field_from_the_product():
     assert np.allclose(g.matvec(w, eps=1e-3), fresh.matvec(w), rtol=1e-12, atol=1e-12 * np.abs(fresh.matvec(w)).max())
 
 
-def test_local_step_radius_from_a_sample_of_many_centres_is_the_full_median(monkeypatch):
-    """Beyond RADIUS_SAMPLE centres the tapered near field's radius is the median k-th distance of a seeded
-    sample: within a percent of every centre's median (SciPy), and the same on every call."""
+def test_local_step_radius_is_the_sampled_median_of_the_neighbours_distances():
+    """The tapered near field's radius is the median distance to the k-th neighbour (self not counted)
+    over neighbour_radius's sample of the centres: within a percent of every centre's median (SciPy),
+    the same on every call, and the median over all the centres where they are fewer than the sample."""
     from scipy.spatial import cKDTree
 
     from o3drbf.solvers.fast import precondition
+    from o3drbf.solvers.fast.neighbours import RADIUS_SAMPLE
     from o3drbf.synthetic.shapes import Torus
 
     pts, _ = Torus().sample(20000, seed=4)
     tree = cKDTree(pts)
     kernel = MultiOrder(10.0, 0.01)
     full = float(np.median(tree.query(pts, k=[33])[0][:, 0]))
-    _, r_all, _ = precondition.tapered_near(kernel, pts, tree, 32, lambda phir: 1.0)
-    assert r_all == full  # every centre up to the sample's size
-    monkeypatch.setattr(precondition, "RADIUS_SAMPLE", 2000)
     _, r1, _ = precondition.tapered_near(kernel, pts, tree, 32, lambda phir: 1.0)
     _, r2, _ = precondition.tapered_near(kernel, pts, tree, 32, lambda phir: 1.0)
     assert r1 == r2 and r1 != full and abs(r1 / full - 1) < 0.01
+    few = pts[:RADIUS_SAMPLE]
+    few_tree = cKDTree(few)
+    _, r_few, _ = precondition.tapered_near(kernel, few, few_tree, 32, lambda phir: 1.0)
+    assert r_few == float(np.median(few_tree.query(few, k=[33])[0][:, 0]))
 
 
 @pytest.mark.parametrize("span", [(7, 9, 5), (33, 20, 17)])

@@ -18,7 +18,7 @@ from o3drbf.solvers.fast.fgmres import fgmres
 from o3drbf.solvers.fast.fmm import FastSum
 from o3drbf.solvers.fast.grid import GridSum
 from o3drbf.solvers.fast.operator import fast_operator
-from o3drbf.solvers.fast.neighbours import CellList, csr_matvec, njit
+from o3drbf.solvers.fast.neighbours import CellList, csr_matvec, neighbour_radius, njit
 
 __all__ = ["TwoLevel", "TwoLevelSettings", "coarse_size", "second_correction", "coarse_factor", "coarse_matrix_factor", "coarse_solve", "COARSE_SINGLE",
            "COARSE_MAX"]
@@ -150,29 +150,15 @@ def _set_diagonal(indptr, indices, data, diag):
                 data[c] = diag[p]
 
 
-def _kth_distance(tree, x, k, chunk=100_000):
-    """Distance from every point of ``x`` to its k-th nearest (by chunks: no (N, k) arrays)."""
-    out = np.empty(len(x))
-    for s in range(0, len(x), chunk):
-        out[s : s + chunk] = tree.query(x[s : s + chunk], k=[k], workers=-1)[0][:, 0]
-    return out
-
-
-#: The local step's radius is a median over at most this many centres (a seeded sample beyond it: the
-#: k-th distances of every one of a million centres took most of the preconditioner's set-up).
-RADIUS_SAMPLE = 50_000
-
-
 def tapered_near(kernel, centres, tree, neighbours: int, diag):
     """The local step's matrix: ``phi(r) - phi(R)`` between the centres within R (the median distance
-    to the ``neighbours``-th neighbour, over every centre up to ``RADIUS_SAMPLE`` of them, else over a
-    seeded sample of that many), its diagonal ``diag`` (CSR, built in place by the cell list, the
+    to the ``neighbours``-th neighbour, self not counted: :func:`~o3drbf.solvers.fast.neighbours.neighbour_radius`,
+    over its sample of the centres), its diagonal ``diag`` (CSR, built in place by the cell list, the
     tapered kernel tabulated at 32,768 radii), its entries in single precision: the local step
     only approximates, and its products, bound by reading the matrix, read a third less.
     Returns (matrix, R, phi(R))."""
     n = len(centres)
-    sample = centres if n <= RADIUS_SAMPLE else centres[np.sort(np.random.default_rng(0).choice(n, RADIUS_SAMPLE, replace=False))]
-    radius = float(np.median(_kth_distance(tree, sample, neighbours + 1)))
+    radius = neighbour_radius(centres, tree, neighbours + 1)
     phir = float(kernel(np.array([radius]))[0])
     rr = np.linspace(0.0, 1.01 * radius, 1 << 15)
     tab = kernel(rr) - phir
