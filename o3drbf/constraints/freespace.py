@@ -36,7 +36,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from o3drbf.constraints.visibility import seen_by
@@ -150,6 +149,19 @@ def _cell(cam, focal, spacing: float, depth: np.ndarray) -> float:
     return size if cam.kind == "center" else max(1.0, size)
 
 
+def _neighbourhood_min(image: np.ndarray, outside: float) -> np.ndarray:
+    """The smallest value of each pixel's 3 x 3 neighbourhood, ``outside`` beyond the edges (what
+    ``scipy.ndimage.minimum_filter(image, size=3, mode="constant", cval=outside)`` gives, without
+    importing ``scipy.ndimage`` for it)."""
+    padded = np.pad(image, 1, constant_values=outside)
+    rows, cols = image.shape
+    out = padded[1:-1, 1:-1].copy()
+    for dy in range(3):
+        for dx in range(3):
+            np.minimum(out, padded[dy:dy + rows, dx:dx + cols], out=out)
+    return out
+
+
 def _zbuffer_test(cam, points, seen, spacing, tolerance, empty="unknown"):
     """Per point: (in free space of cam (N,) bool, usable bool). ``seen``: (N,) bool, the points cam saw."""
     n = len(points)
@@ -180,9 +192,9 @@ def _zbuffer_test(cam, points, seen, spacing, tolerance, empty="unknown"):
     zfar = zfar.reshape(dims)
     # Smallest farthest depth over the 3 x 3 neighbourhood.
     if empty == "abstain":  # an empty neighbour makes the test abstain
-        znear = ndimage.minimum_filter(zfar, size=3, mode="constant", cval=-np.inf).ravel()
+        znear = _neighbourhood_min(zfar, -np.inf).ravel()
     else:  # empty neighbours are ignored; an empty own cell abstains ("unknown") or saw nothing ("free")
-        znear = ndimage.minimum_filter(np.where(np.isfinite(zfar), zfar, np.inf), size=3, mode="constant", cval=np.inf).ravel()
+        znear = _neighbourhood_min(np.where(np.isfinite(zfar), zfar, np.inf), np.inf).ravel()
         if empty == "unknown":
             znear[~hit] = -np.inf
     free = np.zeros(n, dtype=bool)

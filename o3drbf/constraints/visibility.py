@@ -29,7 +29,6 @@ import os
 from typing import Any
 
 import numpy as np
-from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from o3drbf.cameras.model import as_cameras
@@ -96,7 +95,24 @@ def _occupancy(points: np.ndarray, voxel_size: float):
     ijk = np.floor((points - origin) / voxel_size).astype(np.int64)
     occ = np.zeros(ijk.max(axis=0) + pad + 1, dtype=bool)
     occ[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
-    return ndimage.binary_dilation(occ, structure=np.ones((3, 3, 3), bool), iterations=DILATION), origin, voxel_size
+    return _dilated(occ, DILATION), origin, voxel_size
+
+
+def _dilated(occ: np.ndarray, steps: int) -> np.ndarray:
+    """``occ`` grown by ``steps`` voxels along every axis and diagonal (a cube of side ``2 steps + 1``: what
+    ``scipy.ndimage.binary_dilation`` gives with a 3 x 3 x 3 structure, ``steps`` iterations and nothing
+    beyond the edges), one axis at a time."""
+    out = occ.copy()
+    for _ in range(steps):
+        for axis in range(out.ndim):
+            grown = out.copy()
+            lead = [slice(None)] * out.ndim
+            rest = [slice(None)] * out.ndim
+            lead[axis], rest[axis] = slice(1, None), slice(None, -1)
+            grown[tuple(lead)] |= out[tuple(rest)]
+            grown[tuple(rest)] |= out[tuple(lead)]
+            out = grown
+    return out
 
 
 def _boundary_faces(occ: np.ndarray, origin: np.ndarray, voxel_size: float):

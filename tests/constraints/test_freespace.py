@@ -116,3 +116,18 @@ def test_point_confidence_values():
     assert (point_confidence(np.zeros(3, int), pts, nrm, [cam], np.zeros(3, int)) >= 0.1).all()
     with pytest.raises(ValueError, match="all four"):
         point_confidence(np.zeros(3, int), pts)
+
+
+def test_neighbourhood_minimum_is_scipys_minimum_filter():
+    """The z-buffer's 3 x 3 minimum (empty cells -inf, or +inf when ignored; the same value beyond the
+    edges) is scipy.ndimage.minimum_filter's, value for value, on images of one row or column too."""
+    from scipy import ndimage
+
+    from o3drbf.constraints.freespace import _neighbourhood_min
+
+    rng = np.random.default_rng(0)
+    for shape in [(1, 1), (1, 6), (5, 1), (7, 3), (40, 55)]:
+        image = rng.standard_normal(shape)
+        image[rng.random(shape) < 0.3] = -np.inf
+        for outside, im in [(-np.inf, image), (np.inf, np.where(np.isfinite(image), image, np.inf))]:
+            assert np.array_equal(_neighbourhood_min(im, outside), ndimage.minimum_filter(im, size=3, mode="constant", cval=outside))

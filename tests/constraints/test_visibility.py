@@ -119,3 +119,19 @@ def test_subset_with_all_points_as_occluder_and_mesh_occluder():
     # The mesh is faceted (sagitta 0.25 * (1 - cos(pi / 32)) = 0.0012): grazing sightings
     # may put a point that far inside the true torus (measured: 1 of 196, 1e-5 deep).
     assert torus.signed_distance(exterior2).min() > -0.002
+
+
+@pytest.mark.parametrize("steps", [1, 2, 3])
+def test_occupancy_dilation_is_scipys_binary_dilation(steps):
+    """The occupancy grid grown one axis at a time is scipy.ndimage.binary_dilation's with a 3 x 3 x 3
+    structure and as many iterations, nothing grown in from beyond the edges."""
+    from scipy import ndimage
+
+    from o3drbf.constraints.visibility import _dilated
+
+    rng = np.random.default_rng(steps)
+    for shape in [(1, 1, 1), (3, 1, 4), (10, 12, 9)]:
+        for share in (0.02, 0.2):
+            occ = rng.random(shape) < share
+            want = ndimage.binary_dilation(occ, structure=np.ones((3, 3, 3), bool), iterations=steps)
+            assert np.array_equal(_dilated(occ, steps), want)
