@@ -11,10 +11,12 @@ warmed by one untimed run.
     python benchmarks/interleaved.py INPUT [--rev main] [--runs 3]
     python benchmarks/interleaved.py [--rev main] [--runs 3] -- INPUT EXTRA CLI ARGS   (e.g. --surface-count 300000)
 
-Prints a markdown table (one row per run): revision, 1-minute load at the start, wall seconds,
-CPU seconds (user + system of the process and its children), the fit / extract stage seconds of
-``--report``, and whether the mesh has exactly the vertices and triangles of the other
-revision's first timed mesh.
+Each run is the user's command line as ``benchmarks/user_path.py`` runs it (``--report`` added, no
+``-q``: the closing summary and its checks are part of the run).  Prints a markdown table (one row
+per run): revision, 1-minute load at the start, wall seconds, CPU seconds (user + system of the
+process and its children), the fit / extract / checks stage seconds of ``--report``, and whether
+the mesh has exactly the vertices and triangles of the other revision's first timed mesh; then each
+stage's median over the runs, by revision.
 """
 
 from __future__ import annotations
@@ -70,7 +72,7 @@ def run(source: Path | None, args: list[str], out: Path) -> dict:
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start_load = load()
     t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "o3drbf", "reconstruct", *args, "-o", str(out), "--report", str(report), "-q"],
+    proc = subprocess.run([sys.executable, "-m", "o3drbf", "reconstruct", *args, "-o", str(out), "--report", str(report)],
                           capture_output=True, text=True, env=env, cwd=out.parent)
     wall = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -78,8 +80,7 @@ def run(source: Path | None, args: list[str], out: Path) -> dict:
         raise SystemExit(f"interleaved: exit {proc.returncode}: {proc.stderr[-500:]}")
     stages = {s["name"]: s["seconds"] for s in json.loads(report.read_text())["stages"]}
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-    return {"load": start_load, "wall": wall, "cpu": cpu, "fit": stages.get("fit", float("nan")),
-            "extract": stages.get("extract", float("nan"))}
+    return {"load": start_load, "wall": wall, "cpu": cpu, "stages": stages}
 
 
 def mesh_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -108,8 +109,9 @@ def main() -> int:
         # freshly compiled and cached kernels can differ in the last bit)
         print(f"input {a.input}, extra arguments {a.extra or 'none'}; {os.cpu_count()} cores")
         print()
-        print("| run | code | load | wall s | CPU s | fit s | extract s | same mesh as " + a.rev + " |")
-        print("|---|---|---|---|---|---|---|---|")
+        print("| run | code | load | wall s | CPU s | fit s | extract s | checks s | same mesh as " + a.rev + " |")
+        print("|---|---|---|---|---|---|---|---|---|")
+        runs = {name: [] for name, _ in sides}
         for i in range(a.runs):
             for name, source in sides:
                 out = folder / f"run{i}-{name.replace(' ', '_')}.ply"
@@ -118,8 +120,18 @@ def main() -> int:
                 if reference is None:
                     reference = v, t
                 same = v.shape == reference[0].shape and np.array_equal(v, reference[0]) and np.array_equal(t, reference[1])
-                print(f"| {i + 1} | {name} | {r['load']:.2f} | {r['wall']:.2f} | {r['cpu']:.2f} | {r['fit']:.2f} | {r['extract']:.2f} | "
-                      f"{'yes' if same else 'no'} |", flush=True)
+                st = r["stages"]
+                print(f"| {i + 1} | {name} | {r['load']:.2f} | {r['wall']:.2f} | {r['cpu']:.2f} | {st.get('fit', np.nan):.2f} | "
+                      f"{st.get('extract', np.nan):.2f} | {st.get('checks', np.nan):.2f} | {'yes' if same else 'no'} |", flush=True)
+                runs[name].append(r)
+        names = list(dict.fromkeys(k for rs in runs.values() for r in rs for k in r["stages"]))  # in the order of the stages
+        print()
+        print("| medians | wall s | CPU s | " + " | ".join(names) + " |")
+        print("|---|" + "---|" * (len(names) + 2))
+        for name, rs in runs.items():
+            med = [np.median([r["stages"].get(k, np.nan) for r in rs]) for k in names]
+            print(f"| {name} | {np.median([r['wall'] for r in rs]):.2f} | {np.median([r['cpu'] for r in rs]):.2f} | "
+                  + " | ".join(f"{m:.3f}" for m in med) + " |")
     return 0
 
 

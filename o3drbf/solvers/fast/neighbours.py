@@ -427,8 +427,8 @@ def store_near(entries: float, limit: int | None = None) -> bool:
 #: k-nearest query of up to 1,000 neighbours.
 _RADII: dict = {}
 _RADII_KEPT = 64
-#: Centres sampled by :func:`neighbour_radius` (a k-nearest query of each: the median moves by a few
-#: tenths of a percent from 2,000 to 1,000, and the queries of up to 1,000 neighbours take half the time).
+#: Centres sampled by :func:`neighbour_radius`, a k-nearest query of each (benchmarks/recorded/fast_solver.md,
+#: session 33: what 1,000 instead of 2,000 changed).
 RADIUS_SAMPLE = 1000
 
 
