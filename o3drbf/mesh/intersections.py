@@ -519,8 +519,9 @@ def self_intersecting_pairs(vertices: Any, triangles: Any) -> np.ndarray:
     cell = max(cell, span / (_MAX_DIM - 2), np.finfo(float).tiny)
     lo, hi, small, dims = _box_cells(bmin, bmax, origin, cell, _MAX_DIM, _MAX_CELLS)
     keys, ids = _grid_entries(lo, hi, small, dims)
-    if int(dims[0]) * int(dims[1]) * int(dims[2]) <= _COUNTING_SORT_CELLS * max(len(keys), 1024):
-        keys, ids = _by_cell(keys, ids, int(dims[0] * dims[1] * dims[2]))
+    n_cells = int(dims[0]) * int(dims[1]) * int(dims[2])
+    if n_cells <= _COUNTING_SORT_CELLS * max(len(keys), 1024):
+        keys, ids = _by_cell(keys, ids, n_cells)
     else:  # a grid much larger than its entries: a comparison sort
         order = np.argsort(keys, kind="stable")
         keys, ids = keys[order], ids[order]
