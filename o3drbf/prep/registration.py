@@ -115,12 +115,17 @@ def _others(arrays: list, k: int) -> np.ndarray:
 
 
 def _scan_normals(points: np.ndarray, toward: np.ndarray | None) -> np.ndarray:
-    """Normals of one scan's points, turned toward its sensor where ``toward`` (unit directions) is known."""
-    import open3d as o3d
+    """Normals of one scan's points, turned toward its sensor where ``toward`` (unit directions) is known.
 
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(NORMAL_NEIGHBOURS))
-    n = np.asarray(pcd.normals)
+    Each normal is the least-squares plane's of the point's ``NORMAL_NEIGHBOURS`` nearest points (itself
+    included), the covariance's eigenvector of the smallest eigenvalue: Open3D's ``estimate_normals`` with
+    ``KDTreeSearchParamKNN``, without importing Open3D (whose import is a large part of a short run)."""
+    k = min(NORMAL_NEIGHBOURS, len(points))
+    _, idx = cKDTree(points).query(points, k=k, workers=-1)
+    nb = np.take(points, idx.reshape(len(points), k), axis=0)  # (N, k, 3)
+    dev = nb - nb.mean(axis=1)[:, None, :]
+    _, vecs = np.linalg.eigh(np.matmul(dev.transpose(0, 2, 1), dev))
+    n = np.ascontiguousarray(vecs[:, :, 0])
     if toward is not None:
         n = n * np.where(np.einsum("ij,ij->i", n, toward) < 0, -1.0, 1.0)[:, None]
     return n

@@ -189,3 +189,25 @@ def test_register_scans_turns_normals_with_their_scan(torus):
         np.testing.assert_allclose(out.points[sel], moved[sel] @ T[:3, :3].T + T[:3, 3], atol=1e-12)
     np.testing.assert_allclose(np.linalg.norm(out.normals, axis=1), 1.0, atol=1e-9)
     assert out.cameras[0] is not moved_cams[0] and data.points is moved  # a new PointSet; the input untouched
+
+
+def test_scan_normals_are_open3ds_knn_normals_turned_toward_the_sensor():
+    """The scans' own normals (the least-squares plane of each point's nearest neighbours, computed without
+    Open3D) are Open3D's ``estimate_normals`` with the same neighbours, each turned toward its sensor."""
+    import open3d as o3d
+
+    from o3drbf.prep.registration import NORMAL_NEIGHBOURS, _scan_normals
+
+    rng = np.random.default_rng(3)
+    from o3drbf.synthetic.shapes import Torus
+
+    points, _ = Torus(0.7, 0.25).sample(3000, noise=0.002, seed=4)
+    toward = rng.normal(size=points.shape)
+    toward /= np.linalg.norm(toward, axis=1)[:, None]
+    ours = _scan_normals(points, toward)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(NORMAL_NEIGHBOURS))
+    theirs = np.asarray(pcd.normals)
+    theirs = theirs * np.where(np.einsum("ij,ij->i", theirs, toward) < 0, -1.0, 1.0)[:, None]
+    assert (np.einsum("ij,ij->i", ours, toward) >= 0).all()
+    np.testing.assert_allclose(np.einsum("ij,ij->i", ours, theirs), 1.0, atol=1e-9)
