@@ -6,9 +6,10 @@ camera, whether the point is in front of the camera, inside its image and
 unobstructed; :func:`exterior_constraints` turns each such sighting into an
 exterior point (f = -1) a fixed distance from the surface toward the camera.
 
-Occlusion is decided by ray casting (Open3D ``RaycastingScene``) against an
-occupancy proxy of the points: the boundary faces of the voxels that hold a
-point, dilated once (26-neighbourhood) so that the shell has no holes where
+Occlusion is decided by casting rays against an occupancy proxy of the
+points (a walk through its voxels, :class:`VoxelOccluder`; Open3D's
+``RaycastingScene`` for a mesh occluder): the voxels that hold a point,
+dilated once (26-neighbourhood) so that the shell has no holes where
 the samples cover the surface more finely than a voxel (default voxel: three
 mean spacings).  A ray starts ``margin`` away from its point so that it
 leaves the point's own voxels; a ray that grazes the surface stays inside the
@@ -29,6 +30,7 @@ import os
 from typing import Any
 
 import numpy as np
+from numba import njit, prange
 from scipy.spatial import cKDTree
 
 from o3drbf.cameras.model import as_cameras
@@ -36,7 +38,7 @@ from o3drbf.mesh.arrays import mesh_arrays, raycasting_scene
 from o3drbf.prep.sampling import mean_spacing
 from o3drbf.validation import as_points, check_number, shown
 
-__all__ = ["visibility", "exterior_constraints", "occupancy_mesh", "seen_by"]
+__all__ = ["visibility", "exterior_constraints", "occupancy_mesh", "seen_by", "VoxelOccluder"]
 
 #: Default voxel size of the occupancy proxy, in mean point spacings.
 VOXEL_SPACINGS = 3.0
@@ -51,7 +53,7 @@ DILATION = 1
 GROUP_VOXELS = 2.0
 #: Most cells in the dense occupancy grid; coarser voxels beyond.
 MAX_GRID_CELLS = 64_000_000
-#: Rays per ``test_occlusions`` call (bounds memory).
+#: Rays per occlusion test (bounds memory).
 RAY_CHUNK = 2_000_000
 #: Exterior candidates kept per wanted exterior point before Poisson-disc.
 OVERSAMPLE = 2
@@ -219,8 +221,94 @@ def _known(point_camera, n: int, c: int) -> np.ndarray | None:
     return None if point_camera is None else seen_by(point_camera, n, c)
 
 
+class VoxelOccluder:
+    """The occupancy proxy as a grid: a segment is blocked when it meets an occupied voxel.
+
+    The voxels are closed cubes, so this is the test of a segment against the
+    proxy's boundary faces (:func:`occupancy_mesh`) for segments that end
+    outside the proxy: the segment enters the occupied voxels (or starts in
+    one and leaves them), which ray casting against those faces reports as a
+    hit.  Each segment walks the grid voxel by voxel (Amanatides and Woo), in
+    compiled code.
+
+    Parameters
+    ----------
+    occ : (nx, ny, nz) bool array
+    origin : (3,) array
+        Lowest corner of voxel (0, 0, 0).
+    voxel_size : float
+    """
+
+    def __init__(self, occ: np.ndarray, origin: np.ndarray, voxel_size: float):
+        self.occ = np.ascontiguousarray(occ, dtype=np.bool_)
+        self.origin = np.asarray(origin, dtype=float)
+        self.voxel_size = float(voxel_size)
+
+    def blocked(self, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
+        """``(K,)`` bool: whether each segment ``starts[i] -> ends[i]`` (data coordinates) meets an occupied voxel."""
+        a = np.ascontiguousarray((np.asarray(starts, dtype=float) - self.origin) / self.voxel_size)
+        b = np.ascontiguousarray((np.asarray(ends, dtype=float) - self.origin) / self.voxel_size)
+        out = np.empty(len(a), dtype=np.bool_)
+        _walk_segments(a, b, self.occ, out)
+        return out
+
+
+@njit(cache=True, parallel=True)
+def _walk_segments(a, b, occ, out):
+    """``out[r]``: segment ``a[r] -> b[r]`` (grid units: voxel (i, j, k) is [i, i + 1) x ...) meets an occupied voxel."""
+    for r in prange(a.shape[0]):
+        out[r] = _walk(a[r], b[r], occ)
+
+
+@njit(cache=True)
+def _walk(a, b, occ):
+    dims = occ.shape
+    t0, t1 = 0.0, 1.0
+    d = np.empty(3)
+    for ax in range(3):  # the part of the segment inside the grid
+        d[ax] = b[ax] - a[ax]
+        if d[ax] == 0.0:
+            if a[ax] < 0.0 or a[ax] > dims[ax]:
+                return False
+        else:
+            lo, hi = -a[ax] / d[ax], (dims[ax] - a[ax]) / d[ax]
+            if lo > hi:
+                lo, hi = hi, lo
+            t0, t1 = max(t0, lo), min(t1, hi)
+    if t0 > t1:
+        return False
+    cell = np.empty(3, np.int64)
+    step = np.empty(3, np.int64)
+    t_max = np.empty(3)
+    t_delta = np.empty(3)
+    for ax in range(3):
+        c = min(max(np.int64(np.floor(a[ax] + t0 * d[ax])), 0), dims[ax] - 1)
+        cell[ax] = c
+        if d[ax] > 0.0:
+            step[ax], t_max[ax], t_delta[ax] = 1, (c + 1 - a[ax]) / d[ax], 1.0 / d[ax]
+        elif d[ax] < 0.0:
+            step[ax], t_max[ax], t_delta[ax] = -1, (c - a[ax]) / d[ax], -1.0 / d[ax]
+        else:
+            step[ax], t_max[ax], t_delta[ax] = 0, np.inf, np.inf
+    while True:
+        if occ[cell[0], cell[1], cell[2]]:
+            return True
+        ax = 0
+        if t_max[1] < t_max[ax]:
+            ax = 1
+        if t_max[2] < t_max[ax]:
+            ax = 2
+        if t_max[ax] > t1:
+            return False
+        cell[ax] += step[ax]
+        if cell[ax] < 0 or cell[ax] >= dims[ax]:
+            return False
+        t_max[ax] += t_delta[ax]
+
+
 def _resolve_occluder(pts, occluder, voxel_size, margin, tree=None):
-    """Set up occlusion: ``(scene or None, voxel_size, margin, occluding points or None)``.
+    """Set up occlusion: ``(occluder or None, voxel_size, margin, occluding points or None)``: a
+    :class:`VoxelOccluder` of the occluding points, or an Open3D ray-casting scene of a mesh.
 
     ``tree``: an optional KD-tree of the occluding points (``pts`` for a mesh).
     """
@@ -243,17 +331,18 @@ def _resolve_occluder(pts, occluder, voxel_size, margin, tree=None):
         return None, voxel_size, 0.0, ref
     if ref is None:
         verts, tri = mesh_arrays(occluder, "occluder")
+        scene = raycasting_scene(verts, tri)
     else:
         occ, origin, voxel_size = _occupancy(ref, voxel_size)
-        verts, tri = _boundary_faces(occ, origin, voxel_size)
+        scene = VoxelOccluder(occ, origin, voxel_size)
     margin = MARGIN_VOXELS * voxel_size if margin is None else check_number("margin", margin, low=0.0)
-    return raycasting_scene(verts, tri), voxel_size, margin, ref
+    return scene, voxel_size, margin, ref
 
 
 def _unobstructed(scene, cam, origins: np.ndarray, margin: float, span: float) -> np.ndarray:
-    """``(K,)`` bool: the segment from each origin (moved ``margin`` toward the camera) to the camera is free."""
-    import open3d as o3d
+    """``(K,)`` bool: the segment from each origin (moved ``margin`` toward the camera) to the camera is free.
 
+    ``scene``: a :class:`VoxelOccluder` or an Open3D ray-casting scene."""
     free = np.empty(len(origins), dtype=bool)
     for start in range(0, len(origins), RAY_CHUNK):
         p = origins[start : start + RAY_CHUNK]
@@ -261,11 +350,17 @@ def _unobstructed(scene, cam, origins: np.ndarray, margin: float, span: float) -
         if cam.kind == "direction":
             dist = np.full(len(p), span)
         near = dist <= margin  # the camera is within the margin: nothing can be between
-        rays = np.empty((len(p), 6), dtype=np.float32)
-        rays[:, :3] = p + margin * d
-        rays[:, 3:] = d * np.maximum(dist - margin, 0.0)[:, None]  # t in [0, 1] spans start -> camera
-        rays[near, 3:] = d[near]
-        hit = scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0, tfar=1.0, nthreads=_threads()).numpy().astype(bool)
+        if isinstance(scene, VoxelOccluder):
+            begin = p + margin * d
+            hit = scene.blocked(begin, begin + d * np.maximum(dist - margin, 0.0)[:, None])
+        else:
+            import open3d as o3d
+
+            rays = np.empty((len(p), 6), dtype=np.float32)
+            rays[:, :3] = p + margin * d
+            rays[:, 3:] = d * np.maximum(dist - margin, 0.0)[:, None]  # t in [0, 1] spans start -> camera
+            rays[near, 3:] = d[near]
+            hit = scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0, tfar=1.0, nthreads=_threads()).numpy().astype(bool)
         free[start : start + len(p)] = ~hit | near
     return free
 
