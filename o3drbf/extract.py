@@ -11,13 +11,17 @@ crossing.  ``band=False`` evaluates every grid point (the reference).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from o3drbf.progress import progress_bar
 from o3drbf.validation import check_number
 
-__all__ = ["extract_mesh", "mesh_lattice", "evaluate_grid", "refine_on_edges", "grid_for", "mesh_evaluator", "GRID_EVALUATION_MIN", "MESH_EPS",
+if TYPE_CHECKING:
+    from o3drbf.mesh.arrays import MeshArrays
+
+__all__ = ["extract_mesh", "extract_arrays", "mesh_lattice", "evaluate_grid", "refine_on_edges", "grid_for", "mesh_evaluator", "GRID_EVALUATION_MIN", "MESH_EPS",
            "AUTO_RESOLUTION", "auto_resolution", "CORNER_GAP", "REFINE_TOL", "NEWTON_DONE"]
 
 #: ``resolution="auto"`` (the default here and in ``o3drbf.DEFAULTS``, whose
@@ -408,8 +412,39 @@ def extract_mesh(
     >>> mesh.is_watertight(), bool(abs(np.median(np.linalg.norm(np.asarray(mesh.vertices), axis=1)) - 1) < 0.02)  # the unit sphere
     (True, True)
     """
-    import open3d as o3d
+    return extract_arrays(surface, resolution, voxel_size, bounds, level, closed, normals, progress, evaluator, refine).to_open3d()
+
+
+def extract_arrays(
+    surface,
+    resolution: int | str = "auto",
+    voxel_size: float | None = None,
+    bounds=None,
+    level: float = 0.0,
+    closed: bool = True,
+    normals: str = "exact",
+    progress: bool = False,
+    evaluator=None,
+    refine: bool = True,
+) -> MeshArrays:
+    """:func:`extract_mesh`'s mesh as arrays (:class:`o3drbf.mesh.arrays.MeshArrays`), without Open3D.
+
+    Parameters and errors as for :func:`extract_mesh`.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from o3drbf.synthetic.shapes import Sphere
+    >>> points, normals = Sphere(1.0).sample(600, noise=0.002, seed=0)
+    >>> import o3drbf
+    >>> surface = o3drbf.reconstruct(points, normals, surface_count=200, extract_mesh=False).surface
+    >>> mesh = extract_arrays(surface, resolution=20)
+    >>> mesh.vertices.shape[1], mesh.triangles.shape[1], mesh.has_vertex_normals()
+    (3, 3, True)
+    """
     from skimage.measure import marching_cubes
+
+    from o3drbf.mesh.arrays import MeshArrays
 
     if normals not in ("exact", "grid"):
         raise ValueError(f"normals must be 'exact' or 'grid', got {normals!r}")
@@ -460,14 +495,7 @@ def extract_mesh(
         vnormals = np.where(glen > 0, -g / np.where(glen > 0, glen, 1), grid_normals)
     else:
         vnormals = grid_normals
-    mesh = o3d.geometry.TriangleMesh(
-        o3d.utility.Vector3dVector(norm.inverse(verts_box)),
-        o3d.utility.Vector3iVector(faces.astype(np.int32)),
-    )
-    mesh.vertex_normals = o3d.utility.Vector3dVector(np.ascontiguousarray(vnormals, dtype=float))
-    mesh.remove_degenerate_triangles()
-    mesh.remove_unreferenced_vertices()
-    return mesh
+    return MeshArrays(norm.inverse(verts_box), faces, vnormals).without_degenerate_triangles()
 
 
 #: A vertex whose last false-position step moved it less than this fraction of its edge takes no

@@ -1,8 +1,10 @@
 """Triangle meshes as arrays: the one place that turns a mesh into ``(V, F)``.
 
-:func:`mesh_arrays` accepts every mesh form the toolkit takes (Open3D legacy
-or tensor ``TriangleMesh``, a mesh file, or a ``(vertices, triangles)`` pair)
-and checks it; :func:`raycasting_scene` builds the Open3D ray-casting scene
+:class:`MeshArrays` is a mesh as NumPy arrays, what the pipeline hands from
+one stage to the next (Open3D is imported only when a caller asks for an
+Open3D mesh); :func:`mesh_arrays` accepts every mesh form the toolkit takes
+(Open3D legacy or tensor ``TriangleMesh``, :class:`MeshArrays`, a mesh file,
+or a ``(vertices, triangles)`` pair) and checks it; :func:`raycasting_scene` builds the Open3D ray-casting scene
 that visibility, rendering, carving and distance queries share;
 :func:`unique_edges` is the undirected edge table of a triangle list.
 """
@@ -10,12 +12,96 @@ that visibility, rendering, carving and distance queries share;
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-__all__ = ["mesh_arrays", "raycasting_scene", "unique_edges", "triangle_components"]
+__all__ = ["MeshArrays", "mesh_arrays", "raycasting_scene", "unique_edges", "triangle_components"]
+
+
+@dataclass(eq=False)
+class MeshArrays:
+    """A triangle mesh as arrays, named as on Open3D's ``TriangleMesh``.
+
+    Attributes
+    ----------
+    vertices : (V, 3) float64 array
+    triangles : (F, 3) int32 array
+        Vertex indices of each triangle.
+    vertex_normals : (V, 3) float64 array or None
+    vertex_colors : (V, 3) float64 array in [0, 1] or None
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> tetra = MeshArrays(np.eye(4, 3), np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]))
+    >>> len(tetra.vertices), tetra.has_vertex_normals(), tetra.to_open3d().is_watertight()
+    (4, False, True)
+    """
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    vertex_normals: np.ndarray | None = None
+    vertex_colors: np.ndarray | None = None
+
+    def __post_init__(self):
+        self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float64).reshape(-1, 3)
+        self.triangles = np.ascontiguousarray(self.triangles, dtype=np.int32).reshape(-1, 3)
+        for name in ("vertex_normals", "vertex_colors"):
+            value = getattr(self, name)
+            if value is not None:
+                value = np.ascontiguousarray(value, dtype=np.float64).reshape(-1, 3)
+                if len(value) != len(self.vertices):
+                    raise ValueError(f"{name} has {len(value)} rows for {len(self.vertices)} vertices; give one per vertex")
+                setattr(self, name, value)
+
+    def has_vertex_normals(self) -> bool:
+        return self.vertex_normals is not None and len(self.vertices) > 0
+
+    def has_vertex_colors(self) -> bool:
+        return self.vertex_colors is not None and len(self.vertices) > 0
+
+    def has_triangle_normals(self) -> bool:
+        return False
+
+    def keep_triangles(self, keep: np.ndarray) -> "MeshArrays":
+        """The mesh of the triangles where ``keep`` (a bool mask) holds, without the vertices no kept triangle
+        uses: Open3D's ``remove_triangles_by_mask(~keep)`` then ``remove_unreferenced_vertices()`` (the kept
+        triangles and vertices in their order)."""
+        tris = self.triangles[np.asarray(keep, dtype=bool)]
+        used = np.zeros(len(self.vertices), dtype=bool)
+        used[tris.ravel()] = True
+        if used.all():
+            return MeshArrays(self.vertices, tris, self.vertex_normals, self.vertex_colors)
+        index = np.cumsum(used) - 1
+        pick = lambda a: None if a is None else a[used]  # noqa: E731
+        return MeshArrays(self.vertices[used], index[tris], pick(self.vertex_normals), pick(self.vertex_colors))
+
+    def without_degenerate_triangles(self) -> "MeshArrays":
+        """Open3D's ``remove_degenerate_triangles()`` (a triangle naming one vertex twice goes) then
+        ``remove_unreferenced_vertices()``."""
+        t = self.triangles
+        return self.keep_triangles((t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 2] != t[:, 0]))
+
+    def to_open3d(self):
+        """An ``open3d.geometry.TriangleMesh`` with these vertices, triangles, normals and colours."""
+        import open3d as o3d
+
+        mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(self.vertices), o3d.utility.Vector3iVector(self.triangles))
+        if self.vertex_normals is not None:
+            mesh.vertex_normals = o3d.utility.Vector3dVector(self.vertex_normals)
+        if self.vertex_colors is not None:
+            mesh.vertex_colors = o3d.utility.Vector3dVector(self.vertex_colors)
+        return mesh
+
+    @classmethod
+    def from_open3d(cls, mesh) -> "MeshArrays":
+        """The arrays of an ``open3d.geometry.TriangleMesh`` (copies)."""
+        return cls(np.asarray(mesh.vertices), np.asarray(mesh.triangles),
+                   np.asarray(mesh.vertex_normals) if mesh.has_vertex_normals() else None,
+                   np.asarray(mesh.vertex_colors) if mesh.has_vertex_colors() else None)
 
 
 def mesh_arrays(mesh: Any, name: str = "mesh") -> tuple[np.ndarray, np.ndarray]:
@@ -23,7 +109,7 @@ def mesh_arrays(mesh: Any, name: str = "mesh") -> tuple[np.ndarray, np.ndarray]:
 
     Parameters
     ----------
-    mesh : open3d.geometry.TriangleMesh, open3d.t.geometry.TriangleMesh, path or (vertices, triangles)
+    mesh : open3d.geometry.TriangleMesh, open3d.t.geometry.TriangleMesh, MeshArrays, path or (vertices, triangles)
         A mesh file is read with Open3D.
     name : str
         What to call the mesh in error messages.

@@ -27,7 +27,7 @@ import numpy as np
 from scipy import sparse
 from scipy.spatial import cKDTree
 
-from o3drbf.mesh.arrays import mesh_arrays, raycasting_scene, triangle_components, unique_edges
+from o3drbf.mesh.arrays import MeshArrays, mesh_arrays, raycasting_scene, triangle_components, unique_edges
 from o3drbf.mesh.intersections import nonmanifold_vertices, self_intersecting_pairs
 from o3drbf.mesh.nearest import point_mesh_distance
 from o3drbf.validation import as_points, check_number
@@ -146,7 +146,7 @@ def fitness_error(points: Any, mesh: Any) -> dict[str, float]:
     ----------
     points : (N, 3) array_like or open3d.geometry.PointCloud
         The input (e.g. surface-constraint) points.
-    mesh : open3d.geometry.TriangleMesh
+    mesh : open3d.geometry.TriangleMesh, MeshArrays or (vertices, triangles)
         The reconstructed surface.
 
     Returns
@@ -453,12 +453,19 @@ def normal_consistency(mesh_a: Any, mesh_b: Any, n_samples: int = 100_000, seed:
 # mesh report
 
 
+def _open3d_mesh(mesh: Any, verts: np.ndarray, tris: np.ndarray):
+    """``mesh`` itself when it is an Open3D legacy mesh, else one of its arrays."""
+    if hasattr(mesh, "is_orientable"):
+        return mesh
+    return MeshArrays(verts, tris).to_open3d()
+
+
 def mesh_report(mesh: Any, self_intersections: bool = True) -> dict[str, Any]:
     """Counts, topology and size of a triangle mesh.
 
     Parameters
     ----------
-    mesh : open3d.geometry.TriangleMesh
+    mesh : open3d.geometry.TriangleMesh, MeshArrays or (vertices, triangles)
     self_intersections : bool, default True
         Also count self-intersecting triangle pairs, the pairs Open3D's
         ``get_self_intersecting_triangles`` returns, found fast by
@@ -544,7 +551,7 @@ def mesh_report(mesh: Any, self_intersections: bool = True) -> dict[str, Any]:
                         and np.bincount(sides[~up], minlength=ne).max(initial=0) <= 1)
 
     genus = None
-    if watertight and (oriented or mesh.is_orientable()):
+    if watertight and (oriented or _open3d_mesh(mesh, verts, tris).is_orientable()):
         # every vertex in one piece (the mesh is vertex-manifold): each piece's vertices counted once
         vertex_comp = np.full(verts.shape[0], -1, dtype=np.int64)
         vertex_comp[tris] = tri_comp[:, None]
@@ -588,14 +595,15 @@ def drop_specks(mesh, size: float):
 
     Parameters
     ----------
-    mesh : open3d.geometry.TriangleMesh
-        Changed in place.
+    mesh : open3d.geometry.TriangleMesh or MeshArrays
+        An Open3D mesh is changed in place.
     size : float
         Data units; pieces whose bounding-box diagonal is below it go.
 
     Returns
     -------
-    mesh : open3d.geometry.TriangleMesh
+    mesh : open3d.geometry.TriangleMesh or MeshArrays
+        (A new :class:`MeshArrays` when pieces went.)
     removed : int
         Pieces removed.
     """
@@ -614,6 +622,8 @@ def drop_specks(mesh, size: float):
     small = np.linalg.norm(hi - lo, axis=1) < size
     if small.all() or not small.any():
         return mesh, 0
+    if isinstance(mesh, MeshArrays):
+        return mesh.keep_triangles(~small[labels]), int(small.sum())
     mesh.remove_triangles_by_mask(small[labels])
     mesh.remove_unreferenced_vertices()
     return mesh, int(small.sum())

@@ -67,8 +67,9 @@ def mesh_lattice_box(cset, options: ExtractOptions = ExtractOptions()) -> np.nda
     return np.array([origin, origin + (np.array(shape) - 1) * h])
 
 
-def mesh_surface(surface: ImplicitSurface, options: ExtractOptions = ExtractOptions(), *, progress: bool = False):
-    """Marching cubes of f = 0 (:func:`o3drbf.extract.extract_mesh`).
+def mesh_surface(surface: ImplicitSurface, options: ExtractOptions = ExtractOptions(), *, progress: bool = False, arrays: bool = False):
+    """Marching cubes of f = 0 (:func:`o3drbf.extract.extract_mesh`): an Open3D mesh, or with ``arrays`` a
+    :class:`o3drbf.mesh.arrays.MeshArrays` (:func:`o3drbf.extract.extract_arrays`, Open3D not imported).
 
     Raises
     ------
@@ -90,7 +91,7 @@ def mesh_surface(surface: ImplicitSurface, options: ExtractOptions = ExtractOpti
     >>> mesh.is_watertight()
     True
     """
-    from o3drbf.extract import extract_mesh
+    from o3drbf.extract import extract_arrays, extract_mesh
 
     options.validate()
     resolution = options.resolution
@@ -98,7 +99,8 @@ def mesh_surface(surface: ImplicitSurface, options: ExtractOptions = ExtractOpti
         resolution = auto_resolution(float(surface.metadata.get("mean_spacing", float("nan"))))
     check_voxel_size(options.voxel_size, options.bounds if options.bounds is not None else surface.metadata.get("bounds"))
     try:
-        return extract_mesh(surface, resolution=resolution, voxel_size=options.voxel_size, bounds=options.bounds, progress=progress)
+        return (extract_arrays if arrays else extract_mesh)(surface, resolution=resolution, voxel_size=options.voxel_size,
+                                                            bounds=options.bounds, progress=progress)
     except RuntimeError as exc:
         lam = surface.metadata.get("lambda_surface", float("nan"))
         spacing = float(surface.metadata.get("mean_spacing", float("nan")))
@@ -128,7 +130,11 @@ def colour(mesh, data: PointSet):
     """
     if mesh is None or data.colors is None:
         return mesh
+    from o3drbf.mesh.arrays import MeshArrays
     from o3drbf.mesh.color import color_mesh
+
+    if isinstance(mesh, MeshArrays):
+        mesh = mesh.to_open3d()
 
     return color_mesh(mesh, points=data.points, colors=data.colors)
 
@@ -140,7 +146,7 @@ def mesh_confidence(surface: ImplicitSurface, mesh, constraints: Constraints, sp
     Parameters
     ----------
     surface : ImplicitSurface
-    mesh : open3d.geometry.TriangleMesh or None
+    mesh : open3d.geometry.TriangleMesh, MeshArrays or None
     constraints : Constraints
         The constraints of the fit, data coordinates (``Reconstruction.constraints``):
         their smoothing is the GP's noise, their surface points what was observed.
@@ -172,7 +178,11 @@ def mesh_confidence(surface: ImplicitSurface, mesh, constraints: Constraints, sp
     options.validate()
     if mesh is None or not options.wanted:
         return None, mesh, 0
+    from o3drbf.mesh.arrays import MeshArrays
     from o3drbf.mesh.confidence import trim_by_confidence, vertex_confidence
+
+    if isinstance(mesh, MeshArrays):
+        mesh = mesh.to_open3d()
 
     if len(constraints) != len(surface.centres):
         raise ValueError(f"{len(constraints)} constraints for a surface with {len(surface.centres)} centres; give the constraints of this fit")

@@ -10,6 +10,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from o3drbf.constraints.core import EXTERIOR, SURFACE, Constraints
+from o3drbf.mesh.arrays import MeshArrays
 from o3drbf.options import Options
 from o3drbf.prep.normalize import Normalization
 from o3drbf.rbf.kernels import Kernel
@@ -270,6 +271,10 @@ class Reconstruction:
         Evaluate f and grad f anywhere (data coordinates); save/load.
     mesh : open3d.geometry.TriangleMesh or None
         The extracted iso-surface (data coordinates), None if ``extract=False``.
+        Made from :attr:`mesh_arrays` when first asked for (the command line
+        never asks, so it does not import Open3D).
+    mesh_arrays : MeshArrays or None
+        The same mesh as NumPy arrays (read-only view of the result; no Open3D).
     constraints : Constraints
         The constraints used, in data coordinates.
     solution : Solution
@@ -298,13 +303,18 @@ class Reconstruction:
     """
 
     surface: ImplicitSurface
-    mesh: object
+    mesh: object = field(repr=False)  # an Open3D mesh, or a MeshArrays turned into one when first read (below)
     constraints: Constraints
     solution: Solution
     report: Report
     options: Options = field(default_factory=Options)
     confidence: object = None
     points: np.ndarray | None = None
+
+    @property
+    def mesh_arrays(self) -> MeshArrays | None:
+        mesh = self.__dict__.get("_mesh")
+        return mesh if mesh is None or isinstance(mesh, MeshArrays) else MeshArrays.from_open3d(mesh)
 
     def plot(self, *, constraints: bool = False, compare: dict | None = None, title: str | None = None, **options):
         """Show the mesh with PyVista: inline in Jupyter (static PNG, or interactive with trame), else a window or offscreen.
@@ -350,6 +360,21 @@ class Reconstruction:
     def stats(self) -> Report:
         """The report (kept for code written against the older dict: ``stats["points"]`` works)."""
         return self.report
+
+
+def _get_mesh(self):
+    mesh = self.__dict__.get("_mesh")
+    if isinstance(mesh, MeshArrays):  # first read: the Open3D mesh made once, and kept in its place
+        mesh = self.__dict__["_mesh"] = mesh.to_open3d()
+    return mesh
+
+
+def _set_mesh(self, mesh):
+    self.__dict__["_mesh"] = mesh
+
+
+# A property over the dataclass field (its __init__ assigns through it): ``mesh`` may be given as MeshArrays.
+Reconstruction.mesh = property(_get_mesh, _set_mesh, doc="The mesh as an open3d.geometry.TriangleMesh (None without extraction).")
 
 
 class StageTimer:

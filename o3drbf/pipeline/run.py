@@ -134,7 +134,7 @@ def reconstruct(points, normals=None, *, cameras=None, point_camera=None, colors
     mesh, specks = None, 0
     if extract_mesh:
         with stages.stage("extract"):
-            mesh = mesh_surface(surface, opts.extract, progress=progress)
+            mesh = mesh_surface(surface, opts.extract, progress=progress, arrays=True)  # Open3D's mesh made when first asked for
             mesh, specks = drop_specks(mesh, SPECK_SPACINGS * cset.spacing / cset.normalization.scale)
             if specks:
                 log.info("removed %d speck(s) under %g constraint spacings across", specks, SPECK_SPACINGS)

@@ -130,3 +130,63 @@ def test_triangles_sharing_only_a_corner_are_two_pieces():
     n, labels = triangle_components(tris)
     assert n == 2
     assert labels.tolist() == [0, 1, 0]
+
+
+def test_mesh_arrays_removals_are_open3ds():
+    """``keep_triangles`` and ``without_degenerate_triangles`` give, in the same order, the vertices, normals,
+    colours and triangles Open3D's ``remove_triangles_by_mask``, ``remove_degenerate_triangles`` and
+    ``remove_unreferenced_vertices`` leave; ``to_open3d``/``from_open3d`` carry all of them."""
+    import open3d as o3d
+
+    from o3drbf.mesh.arrays import MeshArrays
+
+    rng = np.random.default_rng(0)
+    verts = rng.normal(size=(40, 3))
+    tris = rng.integers(0, 30, size=(60, 3))  # vertices 30-39 unused; some triangles name a vertex twice
+    tris[:5, 1] = tris[:5, 0]
+    normals, colors = rng.normal(size=(40, 3)), rng.uniform(size=(40, 3))
+    ours = MeshArrays(verts, tris, normals, colors)
+    assert (ours.triangles[:, 0] == ours.triangles[:, 1]).sum() >= 5
+
+    def same(a: MeshArrays, b) -> None:
+        for name in ("vertices", "triangles", "vertex_normals", "vertex_colors"):
+            np.testing.assert_array_equal(getattr(a, name), np.asarray(getattr(b, name)), err_msg=name)
+
+    theirs = ours.to_open3d()
+    theirs.remove_degenerate_triangles()
+    theirs.remove_unreferenced_vertices()
+    same(ours.without_degenerate_triangles(), theirs)
+    keep = rng.uniform(size=60) < 0.5
+    theirs = ours.to_open3d()
+    theirs.remove_triangles_by_mask(~keep)
+    theirs.remove_unreferenced_vertices()
+    same(ours.keep_triangles(keep), theirs)
+    same(MeshArrays.from_open3d(theirs), theirs)
+    assert len(ours.keep_triangles(keep).vertices) < 30
+
+
+def test_ply_written_by_o3drbf_is_checked_record_by_record(tmp_path, monkeypatch):
+    """A .ply is read back before its rename and every record compared: a writer that drops a byte leaves no file."""
+    import open3d as o3d
+
+    import o3drbf.io.files as files
+    from o3drbf.mesh.arrays import MeshArrays
+
+    mesh = MeshArrays.from_open3d(o3d.geometry.TriangleMesh.create_sphere(1.0, 8).compute_vertex_normals())
+    files.write_mesh(tmp_path / "ok.ply", mesh)
+    back = o3d.io.read_triangle_mesh(str(tmp_path / "ok.ply"))
+    np.testing.assert_array_equal(np.asarray(back.vertices), mesh.vertices)
+    np.testing.assert_array_equal(np.asarray(back.triangles), mesh.triangles)
+    np.testing.assert_array_equal(np.asarray(back.vertex_normals), mesh.vertex_normals)
+    write = files._write_ply
+
+    def short(path, m, fields):
+        records = write(path, m, fields)
+        with open(path, "r+b") as fh:
+            fh.truncate(fh.seek(0, 2) - 1)
+        return records
+
+    monkeypatch.setattr(files, "_write_ply", short)
+    with pytest.raises(OSError, match="read back"):
+        files.write_mesh(tmp_path / "bad.ply", mesh)
+    assert not (tmp_path / "bad.ply").exists()
