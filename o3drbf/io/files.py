@@ -152,10 +152,24 @@ def _disk_message(path: Path, exc: OSError) -> str:
     if exc.errno == errno.ENOSPC:
         return f"cannot write {path}: the disk is full; free space or choose another folder (nothing was written)"
     if exc.errno == errno.EFBIG:
-        return f"cannot write {path}: file size limit reached; raise the limit (ulimit -f) or choose another folder (nothing was written)"
+        limit = "the file size limit was reached (ulimit -f)"
+        with contextlib.suppress(ImportError, OSError, ValueError):
+            import resource
+
+            soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+            if soft != resource.RLIM_INFINITY:
+                limit = f"the file size limit (ulimit -f) is {soft:,} bytes"
+        return f"cannot write {path}: {limit}; raise it or choose another folder (nothing was written)"
     if exc.errno == errno.EDQUOT:
         return f"cannot write {path}: disk quota exceeded; free space or choose another folder (nothing was written)"
     return f"cannot write {path}: {exc.strerror or exc}; nothing was written"
+
+
+def _disk_error(path: Path, exc: OSError) -> OSError:
+    """The error for a write the disk or a limit stopped: :func:`_disk_message`, with the errno kept."""
+    err = OSError(_disk_message(path, exc))
+    err.errno = exc.errno
+    return err
 
 
 def _cause(path: Path, size: int = 0) -> str:
@@ -211,7 +225,7 @@ def atomic_path(path: str | os.PathLike, verify: Callable[[str], None] | None = 
     try:
         fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=parent)
     except OSError as exc:
-        raise OSError(exc.errno, _disk_message(path, exc)) from None
+        raise _disk_error(path, exc) from None
     os.close(fd)
     with _LOCK:
         _LIVE.add(tmp)
@@ -220,7 +234,7 @@ def atomic_path(path: str | os.PathLike, verify: Callable[[str], None] | None = 
             yield tmp
         except OSError as exc:
             if exc.errno in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT):
-                raise OSError(exc.errno, _disk_message(path, exc)) from None
+                raise _disk_error(path, exc) from None
             raise
         if not os.path.isfile(tmp) or os.path.getsize(tmp) == 0:
             raise write_failed(path, "the writer produced an empty file")
@@ -230,7 +244,7 @@ def atomic_path(path: str | os.PathLike, verify: Callable[[str], None] | None = 
             with open(tmp, "rb+") as fh:
                 os.fsync(fh.fileno())
         except OSError as exc:
-            raise OSError(exc.errno, _disk_message(path, exc)) from None
+            raise _disk_error(path, exc) from None
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the usual permissions
@@ -340,7 +354,10 @@ def check_output(output: str | os.PathLike, inputs: Iterable = (), formats: Sequ
 
 
 def _precision_error(suffix: str, vertices: np.ndarray, folder: Path) -> float:
-    """Largest coordinate error after a write/read round trip of ``vertices`` in ``suffix``."""
+    """Largest coordinate error after a write/read round trip of ``vertices`` in ``suffix`` (none in .ply:
+    :func:`write_mesh` writes its coordinates as doubles)."""
+    if suffix == ".ply":
+        return 0.0
     import open3d as o3d
 
     v = np.asarray(vertices, dtype=float).reshape(-1, 3)
@@ -590,17 +607,20 @@ def write_points(path: str | os.PathLike, points, normals=None, colors=None, inp
 
 def write_mesh(path: str | os.PathLike, mesh, inputs: Iterable = (), tolerance: float = PRECISION_TOLERANCE,
                vertex_fields: dict | None = None) -> Path:
-    """Write an Open3D ``TriangleMesh`` atomically (format from the extension).
+    """Write a triangle mesh atomically (format from the extension).
 
-    The temporary file is read back before the rename: the triangle count
-    must match and no vertex may have moved by more than ``tolerance`` times
-    the bounding-box diagonal (formats with float32 or few printed digits
-    lose coordinates far from the origin).
+    A ``.ply`` is written by o3drbf (binary, little-endian: vertex x y z and
+    normals as doubles, colours as bytes, triangles as int lists) and read
+    back before the rename, every value compared; other formats are written
+    by Open3D and read back by it: the triangle count must match and no
+    vertex may have moved by more than ``tolerance`` times the bounding-box
+    diagonal (formats with float32 or few printed digits lose coordinates far
+    from the origin).
 
     Parameters
     ----------
     path : str or PathLike
-    mesh : open3d.geometry.TriangleMesh
+    mesh : open3d.geometry.TriangleMesh or MeshArrays
     inputs : iterable of paths
         Files the output must not overwrite.
     tolerance : float
@@ -618,10 +638,16 @@ def write_mesh(path: str | os.PathLike, mesh, inputs: Iterable = (), tolerance: 
     OSError
         Open3D failed, or the file read back differs (disk full...).
     """
-    import open3d as o3d
-
     path = check_output(path, inputs=inputs)
     fields = _vertex_fields(path, mesh, vertex_fields)
+    if path.suffix.lower() == ".ply":  # (the check runs after the block, on the records it wrote)
+        with atomic_path(path, verify=lambda tmp: _check_ply(tmp, path, records)) as tmp:
+            records = _write_ply(tmp, mesh, fields)
+        return path
+    import open3d as o3d
+
+    if not hasattr(mesh, "compute_triangle_normals"):  # MeshArrays
+        mesh = mesh.to_open3d()
     if path.suffix.lower() == ".stl" and not mesh.has_triangle_normals():
         mesh.compute_triangle_normals()
     v = np.asarray(mesh.vertices, dtype=float)
@@ -639,17 +665,9 @@ def write_mesh(path: str | os.PathLike, mesh, inputs: Iterable = (), tolerance: 
                     f"output {path}: the {path.suffix} format moved vertices by up to {err:.3g} "
                     f"({err / diag if diag else float('inf'):.2g} of the mesh size); use .ply (float64) or move the data near the origin"
                 )
-        if fields:
-            cloud = o3d.t.io.read_point_cloud(tmp).point
-            for name, values in fields.items():
-                got = cloud[name].numpy().ravel() if name in cloud else None
-                if got is None or not np.array_equal(got, values):
-                    raise write_failed(path, f"vertex property {name!r} read back differs", os.path.getsize(tmp))
 
     with atomic_path(path, verify=verify) as tmp:
-        if fields:
-            _write_ply_fields(tmp, mesh, fields)
-        elif not o3d.io.write_triangle_mesh(tmp, mesh):
+        if not o3d.io.write_triangle_mesh(tmp, mesh):
             raise write_failed(path, "Open3D could not write it")
     return path
 
@@ -672,8 +690,9 @@ def _vertex_fields(path: Path, mesh, vertex_fields: dict | None) -> dict:
     return out
 
 
-def _write_ply_fields(path: str, mesh, fields: dict) -> None:
-    """Binary little-endian PLY: x y z (double), normals (double), colours (uchar), the fields (float), triangles."""
+def _write_ply(path: str, mesh, fields: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Binary little-endian PLY: x y z (double), normals (double), colours (uchar), the fields (float), triangles.
+    Returns the vertex and face records written (for :func:`_check_ply`)."""
     v = np.asarray(mesh.vertices, dtype=float)
     t = np.asarray(mesh.triangles, dtype=np.int64)
     columns = [("x", "<f8", v[:, 0]), ("y", "<f8", v[:, 1]), ("z", "<f8", v[:, 2])]
@@ -698,3 +717,18 @@ def _write_ply_fields(path: str, mesh, fields: dict) -> None:
         fh.write(("\n".join(header) + "\n").encode("ascii"))
         fh.write(vertex.tobytes())
         fh.write(face.tobytes())
+    return vertex, face
+
+
+def _check_ply(tmp: str, path: Path, records: tuple[np.ndarray, np.ndarray]) -> None:
+    """Read back the PLY :func:`_write_ply` wrote: its header's counts and every record, byte for byte."""
+    vertex, face = records
+    data = Path(tmp).read_bytes()
+    end = data.find(b"end_header\n")
+    body = data[end + len(b"end_header\n"):] if end >= 0 else b""
+    header = data[:end].decode("ascii", errors="replace")
+    counts = re.findall(r"element (vertex|face) (\d+)", header)
+    if counts != [("vertex", str(len(vertex))), ("face", str(len(face)))] or len(body) != vertex.nbytes + face.nbytes:
+        raise write_failed(path, f"read back {len(body):,} bytes of data, {vertex.nbytes + face.nbytes:,} written", len(data))
+    if body[: vertex.nbytes] != vertex.tobytes() or body[vertex.nbytes:] != face.tobytes():
+        raise write_failed(path, "the records read back differ from those written", len(data))

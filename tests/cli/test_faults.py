@@ -653,7 +653,7 @@ def test_failed_write_keeps_previous_output(tmp_path, kind, exc, pattern):
 
 
 def test_open3d_writer_returning_false_is_an_error(tmp_path, monkeypatch):
-    out = tmp_path / "out.ply"
+    out = tmp_path / "out.obj"  # (o3drbf writes .ply itself: tests/mesh/test_arrays.py checks it)
     out.write_text("previous")
     before = snapshot(tmp_path)
     monkeypatch.setattr(o3d.io, "write_triangle_mesh", lambda *a, **k: False)
@@ -675,7 +675,7 @@ def test_writer_that_silently_truncates_is_caught(tmp_path, monkeypatch):
         Path(path).write_bytes(data[: len(data) * 2 // 3])
         return ok
 
-    out = tmp_path / "out.ply"
+    out = tmp_path / "out.obj"  # (o3drbf writes .ply itself: tests/mesh/test_arrays.py checks it)
     out.write_text("previous")
     before = snapshot(tmp_path)
     monkeypatch.setattr(o3d.io, "write_triangle_mesh", short_write)
@@ -825,13 +825,15 @@ def test_cli_interrupt_while_writing_leaves_previous_output(cloud, capsys, monke
     out = cloud / "out.ply"
     out.write_text("previous output")
     before = snapshot(cloud)
-    real = o3d.io.write_triangle_mesh
+    import o3drbf.io.files as files
 
-    def interrupted(path, mesh, *a, **k):
-        real(path, mesh)
+    real = files._write_ply  # (the command writes its .ply itself)
+
+    def interrupted(path, mesh, fields):
+        real(path, mesh, fields)
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(o3d.io, "write_triangle_mesh", interrupted)
+    monkeypatch.setattr(files, "_write_ply", interrupted)
     assert main(["reconstruct", str(cloud / "in.ply"), "-o", str(out), *SMALL]) == 130
     assert capsys.readouterr().err.strip() == "o3drbf: interrupted"
     assert snapshot(cloud) == before and not temporaries(cloud)
@@ -880,7 +882,7 @@ def test_cli_file_size_limit_in_subprocess(cloud):
     r = subprocess.run([PY, "-c", code, "reconstruct", str(cloud / "in.ply"), "-o", str(out), *SMALL],
                        capture_output=True, text=True, env=env, timeout=120)
     assert r.returncode == 2, r.stderr
-    last = r.stderr.strip().splitlines()[-1]  # Open3D's C writer prints its own lines first
+    last = r.stderr.strip().splitlines()[-1]
     assert last.startswith("o3drbf: error: cannot write") and "file size limit (ulimit -f) is 4,000 bytes" in last
     assert "Traceback" not in r.stderr
     assert snapshot(cloud) == before and not temporaries(cloud)
