@@ -12,12 +12,15 @@ imports o3drbf.  Nothing is done when Open3D is already imported.
 from __future__ import annotations
 
 import importlib
+import importlib.abc
+import importlib.util
 import sys
+from contextlib import contextmanager
 import threading
 import types
 
 __all__ = ["defer_open3d_plotly", "PLOTLY_MODULE", "no_hugepage_advice", "HUGEPAGE_VARIABLE",
-           "prefer_numba_workqueue", "THREADING_PRIORITY", "ready_numba_in_background"]
+           "prefer_numba_workqueue", "THREADING_PRIORITY", "ready_numba_in_background", "when_imported"]
 
 #: NumPy's environment variable (read when NumPy is imported): "0" stops it advising the kernel to back
 #: large arrays with transparent huge pages.
@@ -168,3 +171,64 @@ def ready_numba_in_background() -> threading.Thread | None:
             _numba_ready = threading.Thread(target=_ready_numba, name="o3drbf-numba-ready", daemon=True)
             _numba_ready.start()
     return _numba_ready
+
+
+class _Then(importlib.abc.Loader):
+    """A module's own loader, then ``callback(module)`` once the module has run (anything else: the loader's)."""
+
+    def __init__(self, loader, callback):
+        self._loader, self._callback = loader, callback
+
+    def create_module(self, spec):
+        return self._loader.create_module(spec)
+
+    def exec_module(self, module):
+        self._loader.exec_module(module)
+        self._callback(module)
+
+    def __getattr__(self, name):
+        return getattr(self._loader, name)
+
+
+class _AfterImport(importlib.abc.MetaPathFinder):
+    def __init__(self, name: str, callback):
+        self.name, self.callback, self.busy = name, callback, False
+
+    def find_spec(self, fullname, path, target=None):
+        if fullname != self.name or self.busy:
+            return None
+        self.busy = True  # the other finders find it
+        try:
+            spec = importlib.util.find_spec(fullname)
+        finally:
+            self.busy = False
+        if spec is not None and spec.loader is not None:
+            spec.loader = _Then(spec.loader, self.callback)
+        return spec
+
+
+@contextmanager
+def when_imported(name: str, callback):
+    """Within the block, ``callback(module)`` runs as soon as top-level module ``name`` is imported (at once
+    when it already is).  The command line sets Open3D's verbosity this way, without importing Open3D
+    itself: most runs never need it, and its import is a large part of a short run.
+
+    Examples
+    --------
+    >>> seen = []
+    >>> with when_imported("json", lambda module: seen.append(module.__name__)):
+    ...     import json
+    >>> seen
+    ['json']
+    """
+    if name in sys.modules:
+        callback(sys.modules[name])
+        yield
+        return
+    finder = _AfterImport(name, callback)
+    sys.meta_path.insert(0, finder)
+    try:
+        yield
+    finally:
+        if finder in sys.meta_path:
+            sys.meta_path.remove(finder)

@@ -291,3 +291,56 @@ def test_numbas_set_up_runs_in_a_thread_once_started_by_the_pipeline(monkeypatch
     p, n = Sphere(1.0).sample(400, seed=1)
     o3drbf.reconstruct(p, n, surface_count=150, resolution=12)
     assert calls == [1]
+
+
+def test_a_scan_reconstructed_to_a_ply_never_imports_open3d_and_gives_the_apis_mesh(tmp_path):
+    """``o3drbf reconstruct scan.json -o mesh.ply`` (with its summary) never imports Open3D (a large part of a
+    short run's start-up); the file holds, to the bit, the mesh ``reconstruct`` gives a Python caller as an
+    Open3D mesh, and Open3D reads it back so."""
+    import numpy as np
+    import open3d as o3d
+
+    import o3drbf
+    from o3drbf.pointset import read_input
+    from o3drbf.synthetic.scans import range_scans, write_scan_json
+
+    sphere = o3d.geometry.TriangleMesh.create_sphere(0.8, 30)
+    points, owner, cameras = range_scans(sphere, n_views=3, width=60, height=45, seed=2)
+    scan = write_scan_json(tmp_path / "scan.json", points, cameras, point_camera=owner)
+    out = tmp_path / "m.ply"
+    code = (
+        "import sys\n"
+        "from o3drbf.cli import main\n"
+        f"assert main(['reconstruct', {str(scan)!r}, '-o', {str(out)!r}]) == 0\n"
+        "print('OPEN3D', 'open3d' in sys.modules)\n"
+    )
+    printed = _python(code)
+    assert "watertight       yes" in printed and printed.split("OPEN3D")[1].split() == ["False"], printed[-1500:]
+    mesh = o3drbf.reconstruct(read_input(str(scan))).mesh
+    assert isinstance(mesh, o3d.geometry.TriangleMesh)
+    back = o3d.io.read_triangle_mesh(str(out))
+    for name in ("vertices", "triangles", "vertex_normals"):
+        assert np.array_equal(np.asarray(getattr(back, name)), np.asarray(getattr(mesh, name))), name
+
+
+def test_when_imported_runs_its_callback_once_the_module_has_run(tmp_path, monkeypatch):
+    """The hook the command line sets Open3D's verbosity with: the callback sees the module after its code ran,
+    at once when it is imported already, and not after the block."""
+    from o3drbf.startup import when_imported
+
+    (tmp_path / "o3drbf_probe_a.py").write_text("VALUE = 7\n")
+    (tmp_path / "o3drbf_probe_b.py").write_text("VALUE = 8\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    seen = []
+    with when_imported("o3drbf_probe_a", lambda m: seen.append(("a", m.VALUE))):
+        assert seen == []
+        import o3drbf_probe_a  # noqa: F401
+    assert seen == [("a", 7)]
+    with when_imported("o3drbf_probe_a", lambda m: seen.append(("again", m.VALUE))):
+        pass
+    with when_imported("o3drbf_probe_b", lambda m: seen.append(("b", m.VALUE))):
+        pass
+    import o3drbf_probe_b  # noqa: F401
+    assert seen == [("a", 7), ("again", 7)]
+    monkeypatch.delitem(sys.modules, "o3drbf_probe_a")
+    monkeypatch.delitem(sys.modules, "o3drbf_probe_b")

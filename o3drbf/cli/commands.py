@@ -242,7 +242,7 @@ def _reconstruct(args) -> int:
     result = reconstruct(data, options=options, seed=args.seed, progress=not args.quiet)
     t_write = time.perf_counter()
     fields = None if result.confidence is None or out.suffix.lower() != ".ply" else {"confidence": result.confidence.confidence}
-    io.write_mesh(out, result.mesh, inputs=[args.input], vertex_fields=fields)
+    io.write_mesh(out, result.mesh_arrays, inputs=[args.input], vertex_fields=fields)
     if args.save_model:
         result.surface.save(args.save_model)
     from o3drbf.pipeline import StageTiming, peak_rss_mb
@@ -412,7 +412,8 @@ def summary_checks(result, points) -> dict:
     from o3drbf.mesh.metrics import fitness_error, mesh_report
 
     kept = points if getattr(result, "points", None) is None else result.points  # outliers removed, repeats merged
-    return {"fitness": fitness_error(kept, result.mesh), "report": mesh_report(result.mesh)}
+    mesh = result.mesh_arrays
+    return {"fitness": fitness_error(kept, mesh), "report": mesh_report(mesh)}
 
 
 def summary(result, points, input_path, output_path, model_path=None, seconds=None, checks=None) -> str:
@@ -427,7 +428,7 @@ def summary(result, points, input_path, output_path, model_path=None, seconds=No
     removed = [f"{s.outliers_removed:,} removed as outliers"] * bool(s.outliers_removed) + [
         f"{s.duplicates_merged:,} repeated points merged"] * bool(s.duplicates_merged)
     scale = result.surface.normalization.scale
-    colored = result.mesh.has_vertex_colors()
+    colored = result.mesh_arrays.has_vertex_colors()
     lines = [
         f"o3drbf reconstruct: {input_path} -> {output_path}",
         f"  points           {s.input_points or s.points:,} read, {s.points:,} kept" + (f" ({', '.join(removed)})" if removed else "")
@@ -640,15 +641,22 @@ def _only_o3drbf_logs(verbose: bool):
 @contextmanager
 def _open3d_quiet(verbose: bool):
     """Open3D's own messages (printed straight to stdout, e.g. "Write OBJ can not include triangle
-    normals") at Error level while a command runs, Warning with -v; restored after."""
+    normals") at Error level while a command runs, Warning with -v; restored after.  Set when the command
+    imports Open3D (:func:`o3drbf.startup.when_imported`): a reconstruction of a scan to a .ply never does."""
+    from o3drbf.startup import when_imported
+
+    before = []
+
+    def quiet(o3d):
+        before.append((o3d, o3d.utility.get_verbosity_level()))
+        o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Warning if verbose else o3d.utility.VerbosityLevel.Error)
+
     try:
-        import open3d as o3d
-    except ImportError:  # pragma: no cover - a dependency
-        yield
-        return
-    level = o3d.utility.VerbosityLevel.Warning if verbose else o3d.utility.VerbosityLevel.Error
-    with o3d.utility.VerbosityContextManager(level):
-        yield
+        with when_imported("open3d", quiet):
+            yield
+    finally:
+        for o3d, level in before:
+            o3d.utility.set_verbosity_level(level)
 
 
 @contextmanager
