@@ -224,12 +224,13 @@ def _known(point_camera, n: int, c: int) -> np.ndarray | None:
 class VoxelOccluder:
     """The occupancy proxy as a grid: a segment is blocked when it meets an occupied voxel.
 
-    The voxels are closed cubes, so this is the test of a segment against the
-    proxy's boundary faces (:func:`occupancy_mesh`) for segments that end
-    outside the proxy: the segment enters the occupied voxels (or starts in
-    one and leaves them), which ray casting against those faces reports as a
-    hit.  Each segment walks the grid voxel by voxel (Amanatides and Woo), in
-    compiled code.
+    The voxels are closed cubes, so for a segment that ends outside the proxy
+    this is its test against the proxy's boundary faces
+    (:func:`occupancy_mesh`): it enters the occupied voxels, or starts in one
+    and leaves.  A segment that starts inside counts as blocked, as the
+    module's notes intend (Open3D's ray casting against the faces, used
+    before, let a few of those through).  Each segment walks the grid voxel
+    by voxel (Amanatides and Woo), in compiled code.
 
     Parameters
     ----------
