@@ -30,7 +30,7 @@ from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
-from o3drbf.io.ply import MAX_POINTS, PlyVertices, check_ply_header, open_ply_vertices, ply_header
+from o3drbf.io.ply import MAX_POINTS, PlyVertices, check_ply_header, open_ply_vertices, ply_header, read_plain_ply
 
 __all__ = [
     "atomic_path",
@@ -526,8 +526,6 @@ def read_points(path: str | os.PathLike):
     >>> points.shape, normals, colors
     ((100, 3), None, None)
     """
-    import open3d as o3d
-
     from o3drbf.validation import as_points
 
     path = Path(path)
@@ -551,20 +549,27 @@ def read_points(path: str | os.PathLike):
         raise ValueError(f"cannot read {path}: {exc.strerror}") from None
     if path.stat().st_size == 0:
         raise ValueError(f"{path}: no points (truncated or empty file)")
+    plain = None
     if suffix == ".ply":
         check_ply_header(path)
+        plain = read_plain_ply(path)  # a binary point cloud without Open3D (most PLY clouds)
     elif suffix in _TEXT_COLUMNS:
         _check_text_columns(path, _TEXT_COLUMNS[suffix])
-    pcd = o3d.io.read_point_cloud(str(path))
-    pts = np.asarray(pcd.points, dtype=float)
+    if plain is not None:
+        pts, normals, colors = plain
+    else:
+        import open3d as o3d
+
+        pcd = o3d.io.read_point_cloud(str(path))
+        pts = np.asarray(pcd.points, dtype=float)
+        normals = np.asarray(pcd.normals, dtype=float) if pcd.has_normals() else None
+        colors = np.asarray(pcd.colors, dtype=float) if pcd.has_colors() else None
     if len(pts) == 0:
         raise ValueError(f"{path}: no points (truncated or empty file, or not a readable {path.suffix} file)")
     try:
         pts = as_points(pts, name=str(path))
     except ValueError as exc:
         raise ValueError(f"{exc}; fix or remove those rows") from None
-    normals = np.asarray(pcd.normals, dtype=float) if pcd.has_normals() else None
-    colors = np.asarray(pcd.colors, dtype=float) if pcd.has_colors() else None
     if normals is not None and not np.isfinite(normals).all():
         raise ValueError(f"{path}: normals have NaN or infinite entries; fix the file or drop its normals")
     return pts, normals, colors

@@ -90,3 +90,51 @@ def test_voxel_errors(tmp_path):
         points_from_voxels(np.ones((2, 2, 2), bool), voxel_size=0)
     with pytest.raises(FileNotFoundError, match="voxel grid file not found"):
         read_voxel_grid(tmp_path / "none.ply")
+
+
+def _ply(path, records, fmt="binary_little_endian"):
+    """A PLY of one vertex element from a structured array (its field names and types as the properties)."""
+    kinds = {"f8": "double", "f4": "float", "u1": "uchar", "i4": "int"}
+    lines = ["ply", f"format {fmt} 1.0", f"element vertex {len(records)}"]
+    lines += [f"property {kinds[records.dtype[k].str[1:]]} {k}" for k in records.dtype.names]
+    with open(path, "wb") as fh:
+        fh.write(("\n".join([*lines, "end_header"]) + "\n").encode())
+        fh.write(records.tobytes())
+    return path
+
+
+@pytest.mark.parametrize("layout", ["xyz double", "xyz normals colours", "float32 big-endian", "extra property", "ascii"])
+def test_point_ply_read_without_open3d_as_open3d_reads_it(tmp_path, layout):
+    """Plain binary point PLYs are read without Open3D, to the same arrays as Open3D's reader gives; others
+    (an unknown property, ASCII) go to Open3D's reader."""
+    import open3d as o3d
+
+    from o3drbf.io.files import read_points
+    from o3drbf.io.ply import read_plain_ply
+
+    rng = np.random.default_rng(1)
+    n = 500
+    fields = {"xyz double": [("x", "<f8"), ("y", "<f8"), ("z", "<f8")],
+              "xyz normals colours": [("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("nx", "<f8"), ("ny", "<f8"), ("nz", "<f8"),
+                                      ("red", "u1"), ("green", "u1"), ("blue", "u1")],
+              "float32 big-endian": [("x", ">f4"), ("y", ">f4"), ("z", ">f4"), ("nx", ">f4"), ("ny", ">f4"), ("nz", ">f4")],
+              "extra property": [("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("intensity", "<f4")],
+              "ascii": [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]}[layout]
+    records = np.zeros(n, dtype=fields)
+    for name in records.dtype.names:
+        records[name] = rng.integers(0, 256, n) if name in ("red", "green", "blue") else rng.normal(size=n)
+    if layout == "ascii":
+        path = tmp_path / "cloud.ply"
+        path.write_text("ply\nformat ascii 1.0\nelement vertex 500\nproperty double x\nproperty double y\nproperty double z\nend_header\n"
+                        + "\n".join(" ".join(repr(float(v)) for v in row) for row in records.tolist()) + "\n")
+    else:
+        path = _ply(tmp_path / "cloud.ply", records, "binary_big_endian" if layout.endswith("big-endian") else "binary_little_endian")
+    assert (read_plain_ply(path) is None) == (layout in ("extra property", "ascii"))
+    points, normals, colors = read_points(path)
+    pcd = o3d.io.read_point_cloud(str(path))
+    np.testing.assert_array_equal(points, np.asarray(pcd.points))
+    assert (normals is None) == (not pcd.has_normals()) and (colors is None) == (not pcd.has_colors())
+    if normals is not None:
+        np.testing.assert_array_equal(normals, np.asarray(pcd.normals))
+    if colors is not None:
+        np.testing.assert_array_equal(colors, np.asarray(pcd.colors))
