@@ -222,15 +222,15 @@ def _known(point_camera, n: int, c: int) -> np.ndarray | None:
 
 
 class VoxelOccluder:
-    """The occupancy proxy as a grid: a segment is blocked when it meets an occupied voxel.
+    """The occupancy proxy as a grid: a segment is blocked where it crosses a face between an occupied and an
+    empty voxel of the grid.
 
-    The voxels are closed cubes, so for a segment that ends outside the proxy
-    this is its test against the proxy's boundary faces
-    (:func:`occupancy_mesh`): it enters the occupied voxels, or starts in one
-    and leaves.  A segment that starts inside counts as blocked, as the
-    module's notes intend (Open3D's ray casting against the faces, used
-    before, let a few of those through).  Each segment walks the grid voxel
-    by voxel (Amanatides and Woo), in compiled code.
+    Those faces are the proxy's boundary faces (:func:`occupancy_mesh`), so
+    this is ray casting against them: a segment that enters occupied voxels,
+    or starts in one and leaves it for an empty one, is blocked; one that
+    leaves the grid straight from the occupied voxels it starts in is not
+    (the grid's outer faces are not the proxy's).  Each segment walks the
+    grid voxel by voxel (Amanatides and Woo), in compiled code.
 
     Parameters
     ----------
@@ -256,7 +256,8 @@ class VoxelOccluder:
 
 @njit(cache=True, parallel=True)
 def _walk_segments(a, b, occ, out):
-    """``out[r]``: segment ``a[r] -> b[r]`` (grid units: voxel (i, j, k) is [i, i + 1) x ...) meets an occupied voxel."""
+    """``out[r]``: segment ``a[r] -> b[r]`` (grid units: voxel (i, j, k) is [i, i + 1) x ...) passes between an
+    occupied and an empty voxel."""
     for r in prange(a.shape[0]):
         out[r] = _walk(a[r], b[r], occ)
 
@@ -291,9 +292,8 @@ def _walk(a, b, occ):
             step[ax], t_max[ax], t_delta[ax] = -1, (c - a[ax]) / d[ax], -1.0 / d[ax]
         else:
             step[ax], t_max[ax], t_delta[ax] = 0, np.inf, np.inf
+    inside = occ[cell[0], cell[1], cell[2]]
     while True:
-        if occ[cell[0], cell[1], cell[2]]:
-            return True
         ax = 0
         if t_max[1] < t_max[ax]:
             ax = 1
@@ -304,6 +304,8 @@ def _walk(a, b, occ):
         cell[ax] += step[ax]
         if cell[ax] < 0 or cell[ax] >= dims[ax]:
             return False
+        if occ[cell[0], cell[1], cell[2]] != inside:
+            return True
         t_max[ax] += t_delta[ax]
 
 

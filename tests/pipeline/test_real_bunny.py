@@ -110,14 +110,9 @@ def test_exterior_constraints_lie_outside_the_bunny(rbf, zipper):
     Inside/outside from ray parity against bun_zipper.ply, which is open in
     its base: within 12 mm of the base (55 of 300 constraints) parity is
     unreliable (7 there are called inside, 2 of them below the lowest vertex),
-    so only the constraints above that band are checked.  A few rays slip
-    through holes of the occupancy proxy where the scans are sparse (the
-    module's stated limit): with seeds 0 to 7 of the reconstruction, 0 to 3
-    of about 250 constraints above the band were inside, and as many with
-    the ray casting before the voxel walk (which gives other sightings, so
-    other random candidates); at seed 0 now 3 of 250.  At most 2 % may be.
-    Mirrored through their closest surface points they are 99.6 % inside, so
-    the check can fail.
+    so only the constraints above that band are checked: measured 0 of 245
+    inside.  Mirrored through their closest surface points they are 99.6 %
+    inside, so the check can fail.
     """
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(zipper))
@@ -125,7 +120,7 @@ def test_exterior_constraints_lie_outside_the_bunny(rbf, zipper):
     ext = ext[ext[:, 1] > np.asarray(zipper.vertices)[:, 1].min() + 0.012].astype(np.float32)
     assert len(ext) > 200
     inside = scene.compute_occupancy(o3d.core.Tensor(ext), nsamples=3).numpy() > 0.5
-    assert inside.sum() <= 0.02 * len(ext), f"{inside.sum()} of {len(ext)} exterior constraints inside the bunny"
+    assert inside.sum() == 0, f"{inside.sum()} of {len(ext)} exterior constraints inside the bunny"
     closest = scene.compute_closest_points(o3d.core.Tensor(ext))["points"].numpy()
     mirrored = (2 * closest - ext).astype(np.float32)
     assert (scene.compute_occupancy(o3d.core.Tensor(mirrored), nsamples=3).numpy() > 0.5).mean() > 0.9
