@@ -427,21 +427,8 @@ def extract_arrays(
     evaluator=None,
     refine: bool = True,
 ) -> MeshArrays:
-    """:func:`extract_mesh`'s mesh as arrays (:class:`o3drbf.mesh.arrays.MeshArrays`), without Open3D.
-
-    Parameters and errors as for :func:`extract_mesh`.
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> from o3drbf.synthetic.shapes import Sphere
-    >>> points, normals = Sphere(1.0).sample(600, noise=0.002, seed=0)
-    >>> import o3drbf
-    >>> surface = o3drbf.reconstruct(points, normals, surface_count=200, extract_mesh=False).surface
-    >>> mesh = extract_arrays(surface, resolution=20)
-    >>> mesh.vertices.shape[1], mesh.triangles.shape[1], mesh.has_vertex_normals()
-    (3, 3, True)
-    """
+    """:func:`extract_mesh`'s mesh as arrays (:class:`o3drbf.mesh.arrays.MeshArrays`), without importing
+    Open3D: the same parameters, errors and mesh (``extract_mesh`` is this, turned into an Open3D mesh)."""
     from skimage.measure import marching_cubes
 
     from o3drbf.mesh.arrays import MeshArrays
