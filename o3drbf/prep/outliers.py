@@ -19,7 +19,7 @@ from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from o3drbf.prep.sampling import spatial_order
+from o3drbf.prep.sampling import neighbourhood_scatter, spatial_order
 from o3drbf.validation import as_points, check_number
 
 __all__ = ["OutlierReport", "largest_components", "voxel_components", "statistical_outliers", "isolated_points"]
@@ -356,11 +356,8 @@ PLANE_CHUNK = 16384
 def _plane_offsets(pts, q, idx):
     """(distance of each ``q`` from the least-squares plane of its neighbours ``pts[idx]`` (rows of k),
     the neighbours' RMS distance from that plane)."""
-    nb = np.take(pts, idx, axis=0)  # (m, k, 3) (take: a contiguous gather)
-    centroid = nb.mean(axis=1)
-    dev = nb - centroid[:, None, :]
-    cov = np.matmul(dev.transpose(0, 2, 1), dev) / idx.shape[1]  # batched BLAS: several times faster than einsum here
-    _, vecs = np.linalg.eigh(cov)
+    centroid, dev, scatter = neighbourhood_scatter(pts, idx)
+    _, vecs = np.linalg.eigh(scatter / idx.shape[1])
     normal = vecs[:, :, 0]
     rms = np.sqrt((np.matmul(dev, normal[:, :, None])[..., 0] ** 2).mean(axis=1))
     return np.abs(np.einsum("ni,ni->n", q - centroid, normal)), rms

@@ -35,6 +35,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from o3drbf.prep.sampling import neighbourhood_scatter
 from o3drbf.validation import as_points, check_number
 
 __all__ = ["Registration", "refine_registration", "apply_transforms"]
@@ -122,9 +123,8 @@ def _scan_normals(points: np.ndarray, toward: np.ndarray | None) -> np.ndarray:
     ``KDTreeSearchParamKNN``, without importing Open3D (whose import is a large part of a short run)."""
     k = min(NORMAL_NEIGHBOURS, len(points))
     _, idx = cKDTree(points).query(points, k=k, workers=-1)
-    nb = np.take(points, idx.reshape(len(points), k), axis=0)  # (N, k, 3)
-    dev = nb - nb.mean(axis=1)[:, None, :]
-    _, vecs = np.linalg.eigh(np.matmul(dev.transpose(0, 2, 1), dev))
+    _, _, scatter = neighbourhood_scatter(points, idx.reshape(len(points), k))
+    _, vecs = np.linalg.eigh(scatter)
     n = np.ascontiguousarray(vecs[:, :, 0])
     if toward is not None:
         n = n * np.where(np.einsum("ij,ij->i", n, toward) < 0, -1.0, 1.0)[:, None]
