@@ -233,36 +233,27 @@ PLAIN_PROPERTIES = ("x", "y", "z", "nx", "ny", "nz", "red", "green", "blue")
 def read_plain_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None] | None:
     """Points, normals and colours of a plain binary point-cloud PLY, as Open3D's reader gives them; else None.
 
-    Plain: binary, the vertex element first, its properties among
-    :data:`PLAIN_PROPERTIES` with x, y, z, the normals all three or none, the
-    colours all three and ``uchar`` or none, and the file long enough.  The
-    points and normals come as float64 and the colours divided by 255, as
-    Open3D's ``read_point_cloud`` returns them; anything else (ASCII, other
-    properties, faces first) returns None, for that reader.  Reading a file
-    this way does not import Open3D.
+    Plain: what :func:`open_ply_vertices` maps, its vertex properties among
+    :data:`PLAIN_PROPERTIES`, the normals all three or none, the colours all
+    three and ``uchar`` or none.  The points and normals come as float64 and
+    the colours divided by 255, as Open3D's ``read_point_cloud`` returns them;
+    anything else (ASCII, other properties, lists before the vertices)
+    returns None, for that reader.  Reading a file this way does not import
+    Open3D.
     """
-    try:
-        h = ply_header(path)
-    except (OSError, ValueError):
-        return None
-    if h["format"] not in ("binary_little_endian", "binary_big_endian") or not h["elements"] or h["elements"][0][0] != "vertex":
-        return None
-    props = h["elements"][0][2]
-    names = [p[-1] for p in props]
-    if any(len(p) != 2 or p[0] not in _PLY_TYPES or p[1] not in PLAIN_PROPERTIES for p in props) or len(set(names)) != len(names):
-        return None
-    has = {group: sum(k in names for k in group) for group in (("x", "y", "z"), ("nx", "ny", "nz"), ("red", "green", "blue"))}
-    if has[("x", "y", "z")] != 3 or has[("nx", "ny", "nz")] not in (0, 3) or has[("red", "green", "blue")] not in (0, 3):
-        return None
-    if has[("red", "green", "blue")] and any(_PLY_TYPES[p[0]] != "u1" for p in props if p[1] in ("red", "green", "blue")):
-        return None
     try:
         vertices = open_ply_vertices(path)
     except (OSError, ValueError):
         return None
+    names = vertices.dtype.names
+    rgb = ("red", "green", "blue")
+    if (not set(names) <= set(PLAIN_PROPERTIES) or sum(k in names for k in ("nx", "ny", "nz")) not in (0, 3)
+            or sum(k in names for k in rgb) not in (0, 3) or any(vertices.dtype[k].kind + str(vertices.dtype[k].itemsize) != "u1"
+                                                                 for k in rgb if k in names)):
+        return None
     points, normals = vertices.take(0, len(vertices))
     colors = None
-    if has[("red", "green", "blue")]:
+    if "red" in names:
         records = vertices.memmap()
-        colors = np.column_stack([np.asarray(records[k], dtype=np.float64) for k in ("red", "green", "blue")]) / 255.0
+        colors = np.column_stack([np.asarray(records[k], dtype=np.float64) for k in rgb]) / 255.0
     return points, normals, colors
